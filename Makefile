@@ -1,0 +1,29 @@
+# Two entry points that work on a fresh clone: `make run` and `make test`.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: run test bench lint clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test,realsense,viz]"
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(VENV)/bin/robotctl demo
+
+lint: $(STAMP)
+	$(PY) -m ruff check robot drivers firmware_protocol tests scripts
+	$(VENV)/bin/vermin --no-tips --violations -t=3.8- robot drivers firmware_protocol scripts
+
+test: lint
+	$(PY) -m pytest
+
+bench: $(STAMP)
+	$(PY) scripts/benchmark.py
+
+clean:
+	rm -rf $(VENV) .venv38 .pytest_cache

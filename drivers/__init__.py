@@ -1,0 +1,1 @@
+"""Hardware drivers (real and fake) and the simulated world."""
