@@ -169,3 +169,19 @@ def render_depth_frame(robot: RobotConfig, scene: SimScene, camera: str, pose: T
     return DepthFrame(camera=camera, depth=to_depth_units(z, depth_scale), depth_scale=depth_scale, K=K,
                       t_capture=t_capture, frame_number=frame_number, timestamp_domain="simulated",
                       truth=tuple(float(v) for v in pose))
+
+
+def random_clutter(plane_map: PlaneMap, count: int, rng: np.random.Generator,
+                   keep_clear: Sequence[Tuple[float, float]] = (), clearance: float = 0.3) -> List[Box]:
+    """Boxes (0.05 to 0.25 m) placed inside the map's extent, away from the given points."""
+    lo, hi = plane_map.bounds()
+    boxes: List[Box] = []
+    tries = 0
+    while len(boxes) < count and tries < 1000:
+        tries += 1
+        x, y = rng.uniform(lo[0] + 0.1, hi[0] - 0.1), rng.uniform(lo[1] + 0.1, hi[1] - 0.1)
+        if any(np.hypot(x - a, y - b) < clearance for a, b in keep_clear):
+            continue
+        s = rng.uniform(0.05, 0.25, 3)
+        boxes.append(Box(x, y, s[0], s[1], s[2], rng.uniform(0, np.pi)))
+    return boxes

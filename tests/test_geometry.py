@@ -1,0 +1,72 @@
+"""Frame conventions and the plane transform identities of DESIGN.md section 2."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robot.config import load_robot_config
+from robot.geometry import (R_BODY_OPTICAL, invert_transform, mount_to_T_robot_camera, pose_to_T_ground_robot,
+                            rpy_to_matrix, transform_plane, transform_points, wrap_angle)
+
+
+def random_transform(rng):
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, rng.normal(size=3)
+    return T
+
+
+def test_plane_transform_keeps_points_on_the_plane():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        T_a_b = random_transform(rng)
+        n = rng.normal(size=3)
+        n /= np.linalg.norm(n)
+        pi_a = np.array([*n, rng.normal()])
+        # Points on the plane in frame a, expressed in frame b, lie on pi_b = T_a_b^T pi_a.
+        basis = np.linalg.svd(n[None])[2][1:]
+        p_a = -pi_a[3] * n + rng.normal(size=(10, 2)) @ basis
+        p_b = transform_points(invert_transform(T_a_b), p_a)
+        pi_b = transform_plane(T_a_b, pi_a)
+        assert np.allclose(p_b @ pi_b[:3] + pi_b[3], 0, atol=1e-12)
+        assert np.linalg.norm(pi_b[:3]) == pytest.approx(1.0)
+        # Composition: going a -> b -> a returns the plane.
+        assert np.allclose(transform_plane(invert_transform(T_a_b), pi_b), pi_a)
+
+
+def test_plane_seen_by_camera_matches_design_formula():
+    robot = load_robot_config("config/robot.yaml")
+    cam = robot.camera("front")
+    T_GR = pose_to_T_ground_robot(0.5, 0.5, math.pi)
+    pi_G = np.array([1.0, 0.0, 0.0, 0.25])  # wall x = -0.25 facing +x
+    pi_C = transform_plane(T_GR @ cam.T_robot_camera, pi_G)
+    # Front camera looks along -x of G from x = 0.4: the wall is 0.65 m straight ahead on the optical axis.
+    assert np.allclose(pi_C[:3], [0, 0, -1], atol=1e-12)
+    assert pi_C[3] == pytest.approx(0.65)
+
+
+def test_optical_frame_and_urdf_pitch():
+    # Optical z is body x (forward), optical x is body -y (right), optical y is body -z (down).
+    assert np.allclose(R_BODY_OPTICAL @ [0, 0, 1], [1, 0, 0])
+    assert np.allclose(R_BODY_OPTICAL @ [1, 0, 0], [0, -1, 0])
+    assert np.allclose(R_BODY_OPTICAL @ [0, 1, 0], [0, 0, -1])
+    # Positive pitch tips the nose down (URDF).
+    assert (rpy_to_matrix(0, math.radians(10), 0) @ [1, 0, 0])[2] < 0
+    # The left camera (yaw 90 deg) looks along robot +y.
+    T = mount_to_T_robot_camera((0, 0.1, 0.12), (0, 0, math.pi / 2))
+    assert np.allclose(T[:3, :3] @ [0, 0, 1], [0, 1, 0], atol=1e-12)
+
+
+def test_wrap_angle_range():
+    a = np.linspace(-20, 20, 401)
+    w = wrap_angle(a)
+    assert np.all(w >= -math.pi) and np.all(w < math.pi)
+    assert np.allclose(np.cos(w), np.cos(a)) and np.allclose(np.sin(w), np.sin(a))
