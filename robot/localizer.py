@@ -147,6 +147,12 @@ class Localizer:
                 continue
             obs = ObservedPlane(plane.id, cam.name, plane.normal, plane.d, fit, cam.T_robot_camera,
                                 pts[fit.inlier_mask], fit_params)
+            rival = self._rival_plane(obs, view.plane_index, candidates, coarse, cov)
+            if rival is not None:
+                reports.append(PlaneReport(plane.id, cam.name, fit.inliers, None, None, False,
+                                           f"ambiguous: the fit is also consistent with plane '{rival}' "
+                                           "within the coarse pose's uncertainty", len(pts)))
+                continue
             observed.append(obs)
             reports.append(PlaneReport(plane.id, cam.name, fit.inliers, [round(float(c), 6) for c in obs.n_robot],
                                        round(obs.d_robot, 6), True, "ok", len(pts)))
@@ -185,6 +191,31 @@ class Localizer:
         ms = (time.perf_counter() - t0) * 1e3
         return LocalizationResult(estimate.x, estimate.y, estimate.phi, estimate.cov, estimate.status,
                                   estimate.unobservable, reports, measurements, ms, passes)
+
+    def _rival_plane(self, obs: ObservedPlane, claimed: int, candidates: Sequence[int], coarse, cov) -> Optional[str]:
+        """Another map plane that would explain this fit as well, given how wrong the coarse pose
+        may be. In a symmetric room a large heading error makes the wrong wall *more* consistent
+        with the prior than the right one; no gate can tell them apart, so such a fit is dropped
+        rather than risk a wrong identification."""
+        win_phi = 4.0 * math.sqrt(max(cov[2, 2], 0.0)) + math.radians(1.0)
+        claimed_plane = self.map.planes[claimed]
+        for j in candidates:
+            if j == claimed:
+                continue
+            pl = self.map.planes[j]
+            if abs(pl.normal[2]) > 0.5:
+                continue  # not a wall: its heading is undefined and the normal gate already separates it
+            if pl.normal @ claimed_plane.normal > math.cos(math.radians(1.0)) and abs(pl.d - claimed_plane.d) < 0.01:
+                continue  # the same physical plane split in the map: an equivalent measurement
+            phi_j = math.atan2(pl.normal[1], pl.normal[0]) - obs.psi_robot
+            if abs(float(wrap_angle(phi_j - coarse[2]))) > win_phi:
+                continue
+            nxy = pl.normal[:2]
+            sd = math.sqrt(max(float(nxy @ cov[:2, :2] @ nxy), 0.0))
+            d_pred = float(nxy @ np.asarray(coarse[:2])) + pl.d
+            if abs(obs.d_robot - d_pred) <= 4.0 * sd + 0.2 * win_phi + 0.02:
+                return pl.id
+        return None
 
     @staticmethod
     def _measurement(o: ObservedPlane, t_capture: float) -> PlaneMeasurement:

@@ -104,16 +104,13 @@ def fit_plane(points: np.ndarray, pi_pred: np.ndarray, params: FitParams,
         best = int(cand[np.argmax(dh[cand])])
     n, d = nh[best], float(dh[best])
 
-    # Refit on all points: inliers of the hypothesis, weighted LS via the moment matrix, then
-    # once more on the refined plane's inliers.
+    # Refit on all points: weighted LS on the hypothesis' inliers via the moment matrix, then
+    # the refined plane's inliers (one refit is enough: a 3-point hypothesis is already within
+    # the inlier band, so the refit moves the plane by a fraction of it).
     thr = np.maximum(params.sigma_k * depth_sigma(points[:, 2], params), params.min_threshold)
     mask = np.abs(points @ n + d) < thr
-    M = None
-    for _ in range(2):
-        if mask.sum() < 3:
-            break
-        M = weighted_moments(points[mask], n, params)
-        n, d = plane_from_moments(M)
+    if mask.sum() >= 3:
+        n, d = plane_from_moments(weighted_moments(points[mask], n, params))
         mask = np.abs(points @ n + d) < thr
     count = int(mask.sum())
     ang = math.acos(float(np.clip(n @ n_pred, -1.0, 1.0)))

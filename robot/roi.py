@@ -54,6 +54,13 @@ class CameraGrid:
         return (len(range(0, self.height, self.stride)), len(range(0, self.width, self.stride)))
 
     @property
+    def frustum(self) -> np.ndarray:
+        f = self.__dict__.get("_frustum")
+        if f is None:
+            f = self.__dict__["_frustum"] = frustum_planes(self.K, self.width, self.height)
+        return f
+
+    @property
     def K_grid(self) -> np.ndarray:
         s = float(self.stride)
         return np.array([[self.K[0, 0] / s, 0, self.K[0, 2] / s], [0, self.K[1, 1] / s, self.K[1, 2] / s], [0, 0, 1]])
@@ -63,7 +70,7 @@ def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground
                         grid: CameraGrid, max_range: float) -> List[PlaneView]:
     """Clip the candidate planes' polygons to the frustum and keep those in front of the camera."""
     T_camera_ground = invert_transform(T_ground_camera)
-    frustum = frustum_planes(grid.K, grid.width, grid.height)
+    frustum = grid.frustum
     cam_G = T_ground_camera[:3, 3]
     views = []
     for idx in candidates:

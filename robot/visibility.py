@@ -80,6 +80,9 @@ def clip_polygon(poly: np.ndarray, planes: np.ndarray) -> Optional[np.ndarray]:
     """Sutherland-Hodgman clip of a convex or concave planar polygon to the half-spaces
     n . p + d >= 0. Returns the clipped (K, 3) polygon or None if nothing remains."""
     out = np.asarray(poly, dtype=float)
+    side = out @ planes[:, :3].T + planes[:, 3]
+    if (side >= 0).all():
+        return out  # entirely inside: the common case for a wall in front of the camera
     for pl in planes:
         if len(out) == 0:
             return None
