@@ -1,0 +1,86 @@
+"""Run every benchmark section and write BENCHMARKS.md (figures are never typed in by hand).
+
+    python scripts/benchmark.py [--quick] [--only NAME ...] [--out BENCHMARKS.md]
+
+Each ``scripts/bench_<topic>.py`` has ``run(quick) -> str`` (a Markdown section).
+"""
+
+from __future__ import annotations
+
+import os
+
+# Small matrices on one core: multi-threaded BLAS only adds contention (and on the Nano, stalls).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import datetime  # noqa: E402
+import importlib  # noqa: E402
+import platform  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+SECTIONS = ["bench_localizer", "bench_controller", "bench_buildings", "bench_protocol", "bench_ifc", "bench_realsense"]
+
+
+def git_describe() -> str:
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True).stdout.strip()
+        return rev + (" (with uncommitted changes)" if dirty else "")
+    except OSError:
+        return "unknown"
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--quick", action="store_true", help="fewer repetitions (for a smoke run; do not publish)")
+    ap.add_argument("--only", nargs="*", help="section module names to run")
+    ap.add_argument("--out", default=str(ROOT / "BENCHMARKS.md"))
+    args = ap.parse_args()
+    header = [
+        "# Benchmarks",
+        "",
+        "Written by `scripts/benchmark.py` (`make bench`); do not edit by hand.",
+        "",
+        f"- commit: {git_describe()}",
+        f"- date: {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}",
+        f"- machine: {cpu_name()}, {os.cpu_count()} logical cores, Python {platform.python_version()}, "
+        f"numpy {__import__('numpy').__version__}, OpenCV {__import__('cv2').__version__}",
+        f"- mode: {'quick (smoke run)' if args.quick else 'full'}; BLAS threads pinned to 1",
+        "",
+    ]
+    body = []
+    for name in args.only or SECTIONS:
+        try:
+            mod = importlib.import_module(name)
+        except ImportError as e:
+            body += [f"## {name}", "", f"_not run: {e}_", ""]
+            continue
+        t0 = time.perf_counter()
+        print(f"running {name} ...", file=sys.stderr, flush=True)
+        body += [mod.run(quick=args.quick), "", f"_{name}: {time.perf_counter() - t0:.0f} s_", ""]
+    Path(args.out).write_text("\n".join(header + body) + "\n")
+    print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
