@@ -19,6 +19,7 @@ from robot.errors import RobotError
 # Modules that add subcommands; each has ``register(subparsers)``.
 COMMAND_MODULES = [
     "robot.cli_localize",
+    "robot.cli_map",
 ]
 
 

@@ -56,6 +56,8 @@ class ChassisConfig:
     max_wheel_speed: float = 20.0  # rad/s, also enforced by the board
     max_wheel_accel: float = 40.0  # rad/s^2, also enforced by the board
     link_timeout: float = 0.1  # s without an encoder report before the link counts as lost
+    watchdog_timeout: float = 0.2  # s without a fresh speed command before the board ramps to zero
+    reconnect_backoff_max: float = 2.0  # s, cap of the doubling delay between reconnect attempts
 
 
 @dataclass(frozen=True)
