@@ -16,7 +16,7 @@ sys.path.insert(0, str(ROOT))
 from drivers.depth_render import DepthNoise, SimScene, random_clutter, render_depth_frame  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
 from robot.crlb import pose_crlb  # noqa: E402
-from robot.localizer import DEFAULT_COARSE_STD, Localizer, coarse_covariance  # noqa: E402
+from robot.localizer import Localizer, coarse_covariance  # noqa: E402
 from robot.plane_map import load_plane_map  # noqa: E402
 
 ROBOT = load_robot_config(ROOT / "config/robot.yaml")
@@ -172,8 +172,9 @@ def timing(quick):
     lines = ["### Time per localization (848x480 frames, in process, single thread)", "",
              "| frames | coarse pose | passes (mean) | median ms | p95 ms |", "|---|---|---|---|---|"]
     for n_frames in (1, 2):
-        for label, off, cov in (("tracking: 1 cm / 0.5 deg off (EKF prior)", (0.007, -0.007, 0.008), coarse_covariance(0.02, math.radians(1))),
-                                ("cold: 0.1 m / 10 deg off", (0.07, -0.07, 0.17), None)):
+        cases = (("tracking: 1 cm / 0.5 deg off (EKF prior)", (0.007, -0.007, 0.008), coarse_covariance(0.02, math.radians(1))),
+                 ("cold: 0.1 m / 10 deg off", (0.07, -0.07, 0.17), None))
+        for label, off, cov in cases:
             ts, passes = [], []
             for _ in range(reps):
                 for p, f in zip(poses, frames):

@@ -8,8 +8,16 @@ import numpy as np
 import pytest
 
 from robot.config import load_robot_config
-from robot.geometry import (R_BODY_OPTICAL, invert_transform, mount_to_T_robot_camera, pose_to_T_ground_robot,
-                            rpy_to_matrix, transform_plane, transform_points, wrap_angle)
+from robot.geometry import (
+    R_BODY_OPTICAL,
+    invert_transform,
+    mount_to_T_robot_camera,
+    pose_to_T_ground_robot,
+    rpy_to_matrix,
+    transform_plane,
+    transform_points,
+    wrap_angle,
+)
 
 
 def random_transform(rng):
