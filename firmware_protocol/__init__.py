@@ -5,8 +5,8 @@ Pure codec, no I/O: ``encode(message) -> bytes`` and ``Decoder().feed(data) -> [
 
 from __future__ import annotations
 
-from firmware_protocol.codec import Decoder, DecoderStats, encode
 from firmware_protocol.cobs import CobsError, cobs_decode, cobs_encode
+from firmware_protocol.codec import Decoder, DecoderStats, encode
 from firmware_protocol.frame import (
     MAX_ENCODED,
     MAX_PAYLOAD,

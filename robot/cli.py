@@ -20,6 +20,8 @@ from robot.errors import RobotError
 COMMAND_MODULES = [
     "robot.cli_localize",
     "robot.cli_map",
+    "robot.cli_cameras",
+    "robot.cli_chassis",
 ]
 
 

@@ -20,7 +20,7 @@ def add_robot_map_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--map", default=str(DEFAULT_MAP), help="plane map YAML (default: %(default)s)")
 
 
-def load_robot_and_map(args) -> "tuple[RobotConfig, PlaneMap]":
+def load_robot_and_map(args) -> tuple[RobotConfig, PlaneMap]:
     return load_robot_config(args.robot), load_plane_map(args.map)
 
 
