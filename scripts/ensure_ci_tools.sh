@@ -7,6 +7,8 @@ set -uo pipefail
 
 missing_pkgs=()
 command -v shellcheck >/dev/null 2>&1 || missing_pkgs+=(shellcheck)
+# pyrealsense2 needs libusb at import time; without it every librealsense test skips.
+{ ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; } || missing_pkgs+=(libusb-1.0-0)
 command -v systemd-analyze >/dev/null 2>&1 || missing_pkgs+=(systemd)
 
 if [ ${#missing_pkgs[@]} -eq 0 ]; then
