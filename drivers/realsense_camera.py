@@ -37,15 +37,17 @@ import os
 import threading
 import time
 from dataclasses import dataclass, fields
-from typing import Any, Callable, Deque, Dict, List, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Deque, Dict, List, Optional, Tuple
 
 import numpy as np
 
 from drivers.camera_base import CameraDriver, CameraState, FrameCallback, ImuCallback
-from robot.config import CameraConfig
 from robot.config_schema import Section
 from robot.errors import ConfigError, DriverError
 from robot.frames import DepthFrame, ImuSample
+
+if TYPE_CHECKING:  # robot.config may import RealSenseConfig from here: no import cycle at run time
+    from robot.config import CameraConfig
 
 log = logging.getLogger(__name__)
 
@@ -500,7 +502,7 @@ class RealSenseCamera(CameraDriver):
                         self._wake.wait(wait)
                         self._wake.clear()
                         continue
-                    if not self._open_or_fail(opened_before):
+                    if not self._open_or_fail():
                         self._wake.wait(backoff)
                         self._wake.clear()
                         backoff = min(backoff * 2.0, max(cfg.reconnect_backoff_max, self.BACKOFF_START))
@@ -535,7 +537,7 @@ class RealSenseCamera(CameraDriver):
             self._close()
             self.cpu_time = time.thread_time() - cpu0
 
-    def _open_or_fail(self, reconnecting: bool) -> bool:
+    def _open_or_fail(self) -> bool:
         if not self.source.is_present():
             self._set_state(CameraState.GONE)
             self._note(f"{self.source.description} is not present")

@@ -26,7 +26,7 @@ def pose_fisher_information(robot: RobotConfig, plane_map: PlaneMap, pose, noise
         K = cam.intrinsics_from_fov()
         grid = CameraGrid(K, cam.width, cam.height, 1)
         T_ground_camera = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
-        views = predict_plane_views(plane_map, index.candidates(T_ground_camera[:3, 3], max_range),
+        views = predict_plane_views(plane_map, index.in_view(T_ground_camera, grid.frustum, max_range),
                                     T_ground_camera, grid, max_range)
         label = rasterize_views(views, grid)
         for k, v in enumerate(views):

@@ -114,7 +114,8 @@ class Localizer:
         grid = self._grid(frame)
         T_ground_camera = pose_to_T_ground_robot(*coarse) @ cam.T_robot_camera
         candidates = self.index.candidates(T_ground_camera[:3, 3], p.max_range)
-        views = predict_plane_views(self.map, candidates, T_ground_camera, grid, p.max_range)
+        in_view = self.index.in_view(T_ground_camera, grid.frustum, p.max_range)
+        views = predict_plane_views(self.map, in_view, T_ground_camera, grid, p.max_range)
         label = rasterize_views(views, grid)
         std_phi = math.sqrt(max(cov[2, 2], 0.0))
         std_pos = math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0))

@@ -28,26 +28,20 @@ _CULL_EPS = 1e-9  # m: a box counts as outside a plane only when clearly so (rou
 
 @dataclass(frozen=True)
 class PackedPolygons:
-    """All polygons of a map in flat arrays, for vectorised per-frame work.
+    """A map's polygons in arrays, for vectorised per-frame work. Polygons are numbered plane by
+    plane in map order: plane i owns polygons ``first[i]:first[i + 1]``."""
 
-    Polygon k has vertices ``vertices[start[k]:start[k + 1]]`` and belongs to plane
-    ``plane_of[k]``; plane i owns polygons ``first[i]:first[i + 1]`` (map order both ways).
-    """
-
-    vertices: np.ndarray  # (V, 3)
-    start: np.ndarray  # (P + 1,)
-    plane_of: np.ndarray  # (P,)
+    planes: np.ndarray  # (N, 4) (n, d) of each plane
     first: np.ndarray  # (N + 1,)
+    plane_of: np.ndarray  # (P,) plane of each polygon
     lo: np.ndarray  # (P, 3) bounding box of each polygon
     hi: np.ndarray  # (P, 3)
-    planes: np.ndarray  # (N, 4) (n, d) of each plane
-
-    def polygons_of(self, plane_indices: np.ndarray) -> np.ndarray:
-        """Indices of the polygons of the given planes, plane by plane, in map order."""
-        return concat_ranges(self.first[plane_indices], self.first[plane_indices + 1])
+    box6: np.ndarray  # (P, 6) centre and half-size of that box
+    plane_vertices: Tuple[np.ndarray, ...]  # per plane: its polygons' vertices stacked
+    plane_counts: Tuple[Tuple[int, ...], ...]  # per plane: vertex count of each of its polygons
 
 
-def concat_ranges(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+def _concat_ranges(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
     """Concatenation of arange(s, e) for each pair, without a Python loop."""
     counts = stops - starts
     total = int(counts.sum())
@@ -58,23 +52,23 @@ def concat_ranges(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
 
 
 def packed_polygons(plane_map: PlaneMap) -> PackedPolygons:
-    """The map's polygons packed; computed once per map object and cached on it."""
+    """The map's polygons packed; computed once per map object and cached on it (maps are not
+    edited in place once loaded)."""
     key = (id(plane_map.planes), len(plane_map.planes))
     cached = plane_map.__dict__.get("_packed_polygons")
     if cached is not None and cached[0] == key:
         return cached[1]
     polys = [poly for p in plane_map.planes for poly in p.polygons]
-    counts = np.array([len(poly) for poly in polys], dtype=np.intp)
     per_plane = np.array([len(p.polygons) for p in plane_map.planes], dtype=np.intp)
-    vertices = np.vstack(polys) if polys else np.zeros((0, 3))
-    start = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
+    lo = np.array([poly.min(axis=0) for poly in polys]).reshape(-1, 3)
+    hi = np.array([poly.max(axis=0) for poly in polys]).reshape(-1, 3)
     packed = PackedPolygons(
-        vertices=vertices, start=start,
-        plane_of=np.repeat(np.arange(len(plane_map.planes), dtype=np.intp), per_plane),
+        planes=plane_map.plane_array,
         first=np.concatenate([[0], np.cumsum(per_plane)]).astype(np.intp),
-        lo=np.array([poly.min(axis=0) for poly in polys]).reshape(-1, 3),
-        hi=np.array([poly.max(axis=0) for poly in polys]).reshape(-1, 3),
-        planes=plane_map.plane_array)
+        plane_of=np.repeat(np.arange(len(plane_map.planes), dtype=np.intp), per_plane),
+        lo=lo, hi=hi, box6=np.hstack([0.5 * (lo + hi), 0.5 * (hi - lo)]),
+        plane_vertices=tuple(p.vertices for p in plane_map.planes),
+        plane_counts=tuple(tuple(len(poly) for poly in p.polygons) for p in plane_map.planes))
     plane_map.__dict__["_packed_polygons"] = (key, packed)
     return packed
 
@@ -94,7 +88,7 @@ class _Grid:
         wi, wj = i1 - i0 + 1, j1 - j0 + 1
         counts = wi * wj
         item = np.repeat(np.arange(len(lo), dtype=np.intp), counts)
-        k = concat_ranges(np.zeros_like(counts), counts)  # position inside each item's block of cells
+        k = _concat_ranges(np.zeros_like(counts), counts)  # position inside each item's block of cells
         wj_rep = np.repeat(wj, counts)
         cell_id = (np.repeat(i0, counts) + k // wj_rep) * self.nj + np.repeat(j0, counts) + k % wj_rep
         order = np.argsort(cell_id, kind="stable")
@@ -188,8 +182,7 @@ class PlaneIndex:
         # plane when even its corner furthest along the plane's normal is behind it.
         n_G = planes_C[:, :3] @ R.T
         d_G = planes_C[:, 3] - n_G @ t
-        lo, hi = pk.lo[polys], pk.hi[polys]
-        reach = (lo + hi) @ (0.5 * n_G.T) + (hi - lo) @ (0.5 * np.abs(n_G).T) + d_G
+        reach = pk.box6[polys] @ np.vstack([n_G.T, np.abs(n_G).T]) + d_G
         planes = np.unique(pk.plane_of[polys[(reach >= -_CULL_EPS).all(axis=1)]])
         pi = pk.planes[planes]
         # Same back-face rule as predict_plane_views, with room for rounding.

@@ -16,7 +16,7 @@ VISIBLE_RANGE = 10.0  # m: report what is geometrically in view, beyond the loca
 def visible_planes(plane_map: PlaneMap, cam: CameraConfig, pose: Tuple[float, float, float]) -> List[Dict]:
     grid = CameraGrid(cam.intrinsics_from_fov(), cam.width, cam.height, 1)
     T_ground_camera = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
-    candidates = PlaneIndex(plane_map).candidates(T_ground_camera[:3, 3], VISIBLE_RANGE)
+    candidates = PlaneIndex(plane_map).in_view(T_ground_camera, grid.frustum, VISIBLE_RANGE)
     views = predict_plane_views(plane_map, candidates, T_ground_camera, grid, VISIBLE_RANGE)
     label = rasterize_views(views, grid)
     out = []
