@@ -7,13 +7,19 @@ silently falls back to a default on a robot.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
 import numpy as np
 
+from drivers.realsense_config import RealSenseConfig, parse_realsense_config
 from robot.config_schema import Section, load_yaml_file
+from robot.ekf import FilterConfig
 from robot.geometry import mount_to_T_robot_camera
+from robot.health import HealthConfig
+from robot.quality import QualityConfig
+from robot.trajectory import ControlConfig
 
 
 @dataclass(frozen=True)
@@ -27,6 +33,7 @@ class CameraConfig:
     mount_xyz: Tuple[float, float, float]
     mount_rpy_deg: Tuple[float, float, float]
     serial: Optional[str] = None  # RealSense serial number; None = the only device present
+    realsense: RealSenseConfig = field(default_factory=RealSenseConfig)  # optional 'realsense:' section
 
     @property
     def T_robot_camera(self) -> np.ndarray:
@@ -85,6 +92,11 @@ class RobotConfig:
     cameras: Tuple[CameraConfig, ...]
     chassis: ChassisConfig = field(default_factory=ChassisConfig)
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
+    fusion: FilterConfig = field(default_factory=FilterConfig)
+    quality: QualityConfig = field(default_factory=QualityConfig)
+    map_path: Optional[str] = None  # `map:` the robot's plane map, relative to the config file
     source: str = "<built-in>"
 
     def camera(self, name: str) -> CameraConfig:
@@ -109,6 +121,7 @@ def _parse_camera(sec: Section) -> CameraConfig:
         mount_xyz=mount.vector("xyz", 3),
         mount_rpy_deg=mount.vector("rpy_deg", 3),
         serial=str(sec.raw("serial")) if sec.has("serial") else None,
+        realsense=parse_realsense_config(sec.sub("realsense")),
     )
     mount.done()
     sec.done()
@@ -130,7 +143,10 @@ def _parse_dataclass(sec: Section, cls):
         else:
             values[name] = sec.string(name, default)
     sec.done()
-    return cls(**values)
+    try:
+        return cls(**values)
+    except ValueError as e:  # a dataclass's own cross-field check (__post_init__)
+        sec.fail(str(e))
 
 
 def parse_robot_config(data, source: str = "<robot config>") -> RobotConfig:
@@ -147,8 +163,18 @@ def parse_robot_config(data, source: str = "<robot config>") -> RobotConfig:
         top.fail(f"duplicate camera name(s): {', '.join(dup)}")
     chassis = _parse_dataclass(top.sub("chassis"), ChassisConfig)
     localizer = _parse_dataclass(top.sub("localizer"), LocalizerConfig)
+    control = _parse_dataclass(top.sub("control"), ControlConfig)
+    health = _parse_dataclass(top.sub("health"), HealthConfig)
+    fusion = _parse_dataclass(top.sub("fusion"), FilterConfig)
+    quality = _parse_dataclass(top.sub("quality"), QualityConfig)
+    map_path = None
+    if top.has("map"):
+        rel = top.string("map")
+        base = os.path.dirname(os.path.abspath(source)) if not source.startswith("<") else os.getcwd()
+        map_path = os.path.normpath(os.path.join(base, os.path.expanduser(rel)))
     top.done()
-    return RobotConfig(cameras=tuple(cams), chassis=chassis, localizer=localizer, source=source)
+    return RobotConfig(cameras=tuple(cams), chassis=chassis, localizer=localizer, control=control, health=health,
+                       fusion=fusion, quality=quality, map_path=map_path, source=source)
 
 
 def load_robot_config(path) -> RobotConfig:

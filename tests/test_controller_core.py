@@ -1,0 +1,124 @@
+"""ControllerCore: the decisions that keep the robot safe, with explicit times (no threads)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from robot.config import load_robot_config
+from robot.controller_core import ControllerCore
+from robot.encoder_odometry import EncoderOdometry, WheelOdometry, wrap_delta_i32
+from robot.path_file import parse_path
+
+ROBOT = load_robot_config("config/robot.yaml")
+COV = np.diag([1e-4, 1e-4, 1e-4])
+
+
+def _plan():
+    return parse_path({"start": {"x": 0.0, "y": 0.0, "heading": 0.0}, "waypoints": [{"x": 1.0, "y": 0.0}]})
+
+
+def _odo(t, speeds=(0.0, 0.0, 0.0, 0.0), dt=0.01):
+    return WheelOdometry(t=t, angles=(0.0,) * 4, speeds=tuple(speeds), dt=dt, t_board=t)
+
+
+def _driving_core(vision=False):
+    core = ControllerCore(ROBOT, vision=vision, t_start=0.0)
+    core.set_pose(0.0, 0.0, 0.0, 0.0, COV)
+    core.set_chassis_link(True)
+    core.follow(_plan())
+    t = 0.0
+    for _ in range(100):  # 1 s of odometry and control: the robot accelerates along x
+        t += 0.01
+        core.on_odometry(_odo(t))
+        out = core.control_step(t)
+    return core, t, out
+
+
+def test_path_command_moves_towards_the_waypoint_within_limits():
+    core, t, out = _driving_core()
+    assert out.wheels is not None
+    assert out.command.vx > 0.05 and abs(out.command.vy) < 1e-6
+    assert out.command.vx <= ROBOT.control.max_speed + 1e-9
+
+
+def test_no_command_is_sent_while_the_chassis_link_is_down():
+    core, t, _ = _driving_core()
+    core.set_chassis_link(False, "chassis link lost")
+    out = core.control_step(t + 0.02)
+    assert out.wheels is None and "lost" in out.reason
+
+
+def test_stale_odometry_brings_the_speed_target_to_zero():
+    core, t, out = _driving_core()
+    v0 = out.command.vx
+    # odometry stops: after max_command_age the pose is stale and the target is zero
+    t2 = t + ROBOT.health.max_command_age + 0.05
+    out = core.control_step(t2)
+    assert out.speed_scale == 0.0 and "stale" in out.reason
+    for k in range(100):  # the limiter brakes within its limits, never a jump
+        out = core.control_step(t2 + 0.02 * (k + 1))
+    assert out.command.vx == pytest.approx(0.0, abs=1e-9) and v0 > 0.0
+
+
+def test_without_vision_required_localization_age_does_not_stop_odometry_runs():
+    core, t, out = _driving_core(vision=False)
+    assert out.speed_scale == 1.0
+
+
+def test_with_vision_no_localization_slows_then_stops():
+    core = ControllerCore(ROBOT, vision=True, t_start=0.0)
+    core.set_pose(0.0, 0.0, 0.0, 0.0, COV)
+    core.set_chassis_link(True)
+    core.follow(_plan())
+    scales = {}
+    t = 0.0
+    while t < ROBOT.health.stop_after + 0.5:
+        t = round(t + 0.01, 6)
+        core.on_odometry(_odo(t))
+        out = core.control_step(t)
+        scales[round(t, 2)] = out.speed_scale
+    assert scales[0.5] == 1.0
+    assert scales[round(ROBOT.health.slow_after + 0.2, 2)] == ROBOT.health.slow_scale
+    assert scales[round(ROBOT.health.stop_after + 0.2, 2)] == 0.0
+
+
+def test_teleop_deadman_zeroes_an_old_operator_twist():
+    core = ControllerCore(ROBOT, vision=False, t_start=0.0)
+    core.set_pose(0.0, 0.0, 0.0, 0.0, COV)
+    core.set_chassis_link(True)
+    core.teleoperate()
+    core.set_teleop_twist(0.0, 0.2, 0.0, 0.0)
+    t = 0.0
+    for _ in range(25):
+        t += 0.02
+        core.on_odometry(_odo(t))
+        out = core.control_step(t)
+    assert out.command.vx > 0.05
+    for _ in range(100):  # no new key for 2 s: the deadman brings it to rest
+        t += 0.02
+        core.on_odometry(_odo(t))
+        out = core.control_step(t)
+    assert out.command.vx == pytest.approx(0.0, abs=1e-9)
+    core.set_teleop_twist(t, math.nan, 0.0, 0.0)  # a NaN from a broken input never becomes motion
+    out = core.control_step(t + 0.02)
+    assert out.wheels is not None and all(math.isfinite(w) for w in out.wheels)
+
+
+def test_no_command_before_a_pose_is_known():
+    core = ControllerCore(ROBOT, vision=True, t_start=0.0)
+    core.set_chassis_link(True)
+    core.follow(_plan())
+    out = core.control_step(0.1)
+    assert out.wheels is None and "no pose" in out.reason
+
+
+def test_encoder_odometry_unwraps_int32_and_refuses_impossible_jumps():
+    enc = EncoderOdometry(1320, 20.0)
+    assert enc.update((2**31 - 10, 0, 0, 0), 0.0, 0.0) is None  # baseline
+    s = enc.update((-(2**31) + 10, 0, 0, 0), 0.01, 0.01)  # wrapped: +20 ticks
+    assert s is not None and s.angles[0] == pytest.approx(20 * 2 * math.pi / 1320)
+    assert wrap_delta_i32(-(2**31) + 10, 2**31 - 10) == 20
+    assert enc.update((100000, 0, 0, 0), 0.02, 0.02) is None and enc.implausible == 1
