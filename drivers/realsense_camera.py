@@ -19,7 +19,9 @@ What it does, and why:
   changed callback, or a presence poll on every timeout) is GONE and is polled for with capped
   exponential backoff until it comes back, then reopened.
 - **IMU** (gyro and accel of a D435i) through its own sensor callback, not the depth pipeline:
-  a pipeline delivers at most one motion sample per frameset.
+  a pipeline delivers at most one motion sample per frameset. Samples go to ``on_imu`` as
+  ``ImuSample``s on the host monotonic clock, in the camera's IMU frame (the depth axes,
+  :mod:`drivers.realsense_imu`); ``T_robot_imu`` and ``yaw_rate_robot`` give the robot's yaw rate.
 
 The device comes from an injectable source: :class:`LiveDevice` (by serial number, or the only
 camera present) on the robot, :class:`PlaybackFile` (a librealsense ``.bag`` recording, played
@@ -32,103 +34,27 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import os
 import threading
 import time
-from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Any, Callable, Deque, Dict, List, Optional, Tuple
 
 import numpy as np
 
 from drivers.camera_base import CameraDriver, CameraState, FrameCallback, ImuCallback
-from robot.config_schema import Section
-from robot.errors import ConfigError, DriverError
+from drivers.realsense_config import (  # noqa: F401  (re-exported: the driver's settings)
+    VISUAL_PRESETS,
+    RealSenseConfig,
+    parse_realsense_config,
+)
+from drivers.realsense_imu import D435I_T_CAMERA_IMU, T_from_rs_extrinsics
+from robot.errors import DriverError
 from robot.frames import DepthFrame, ImuSample
 
-if TYPE_CHECKING:  # robot.config may import RealSenseConfig from here: no import cycle at run time
+if TYPE_CHECKING:  # only for annotations: the driver module stays importable on its own
     from robot.config import CameraConfig
 
 log = logging.getLogger(__name__)
-
-VISUAL_PRESETS = ("default", "high_accuracy", "high_density", "medium_density", "hand", "custom")
-
-
-# --------------------------------------------------------------------------------------------
-# Config
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class RealSenseConfig:
-    """Per-camera RealSense settings (the ``realsense:`` sub-section of a camera in robot.yaml).
-
-    Defaults follow Intel's advice for D435 depth (848x480 at 30 fps, auto exposure) with the
-    High Accuracy preset, which drops low-confidence depth instead of filling it in: a plane fit
-    wants fewer, right points, not more, invented ones.
-    """
-
-    visual_preset: str = "high_accuracy"  # one of VISUAL_PRESETS; "custom" leaves the camera's own
-    emitter_enabled: bool = True  # the IR pattern projector; texture for stereo on bare walls
-    laser_power: float = 150.0  # mW, clamped to the camera's range (D435: 0..360, factory 150)
-    frame_timeout_ms: int = 1000  # a wait this long without a frame is a stall
-    stalls_before_reset: int = 3  # consecutive timeouts before hardware_reset (live) / restart
-    reconnect_backoff_max: float = 5.0  # s, cap of the exponential backoff while GONE
-    reset_settle: float = 3.0  # s to wait after hardware_reset before looking for the device
-    clock_window: float = 10.0  # s of host time over which the clock offset is estimated
-    imu_enabled: bool = False  # stream gyro and accel (D435i) for the EKF's prediction
-    gyro_fps: int = 200  # D435i: 200 or 400
-    accel_fps: int = 63  # D435i: 63 or 250 (100 or 200 on firmware >= 5.16); nearest is taken
-    decimation: int = 1  # librealsense decimation_filter magnitude; 1 = off
-    spatial_filter: bool = False  # librealsense spatial_filter (edge-preserving smoothing)
-    temporal_filter: bool = False  # librealsense temporal_filter (smooths over frames: lags motion)
-
-    def validate(self, where: str = "realsense") -> None:
-        if self.visual_preset not in VISUAL_PRESETS:
-            raise ConfigError(f"{where}: 'visual_preset' must be one of {list(VISUAL_PRESETS)}, "
-                              f"got {self.visual_preset!r}")
-        if not 1 <= self.decimation <= 8:
-            raise ConfigError(f"{where}: 'decimation' must be 1 (off) to 8, got {self.decimation}")
-        if self.frame_timeout_ms < 50:
-            raise ConfigError(f"{where}: 'frame_timeout_ms' must be >= 50, got {self.frame_timeout_ms}")
-        if self.stalls_before_reset < 1:
-            raise ConfigError(f"{where}: 'stalls_before_reset' must be >= 1, got {self.stalls_before_reset}")
-        for name in ("laser_power", "reconnect_backoff_max", "reset_settle", "clock_window"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"{where}: '{name}' must be a finite number >= 0, got {v}")
-        if self.clock_window <= 0:
-            raise ConfigError(f"{where}: 'clock_window' must be > 0, got {self.clock_window}")
-        if self.gyro_fps <= 0 or self.accel_fps <= 0:
-            raise ConfigError(f"{where}: 'gyro_fps' and 'accel_fps' must be > 0")
-
-
-def parse_realsense_config(sec: Section) -> RealSenseConfig:
-    """Read a ``realsense:`` section (every key optional; unknown keys are errors)."""
-    d = RealSenseConfig()
-    cfg = RealSenseConfig(
-        visual_preset=sec.string("visual_preset", d.visual_preset, choices=VISUAL_PRESETS),
-        emitter_enabled=sec.boolean("emitter_enabled", d.emitter_enabled),
-        laser_power=sec.number("laser_power", d.laser_power, lo=0.0),
-        frame_timeout_ms=sec.integer("frame_timeout_ms", d.frame_timeout_ms, lo=50),
-        stalls_before_reset=sec.integer("stalls_before_reset", d.stalls_before_reset, lo=1),
-        reconnect_backoff_max=sec.number("reconnect_backoff_max", d.reconnect_backoff_max, lo=0.0),
-        reset_settle=sec.number("reset_settle", d.reset_settle, lo=0.0),
-        clock_window=sec.number("clock_window", d.clock_window, positive=True),
-        imu_enabled=sec.boolean("imu_enabled", d.imu_enabled),
-        gyro_fps=sec.integer("gyro_fps", d.gyro_fps, lo=1),
-        accel_fps=sec.integer("accel_fps", d.accel_fps, lo=1),
-        decimation=sec.integer("decimation", d.decimation, lo=1),
-        spatial_filter=sec.boolean("spatial_filter", d.spatial_filter),
-        temporal_filter=sec.boolean("temporal_filter", d.temporal_filter),
-    )
-    sec.done()
-    where = f"{sec.source}: {sec.where}" if sec.where else sec.source
-    cfg.validate(where)
-    return cfg
-
-
-REALSENSE_CONFIG_FIELDS = tuple(f.name for f in fields(RealSenseConfig))
 
 
 # --------------------------------------------------------------------------------------------
@@ -412,16 +338,19 @@ class RealSenseCamera(CameraDriver):
     (hardware resets issued), ``imu`` and ``imu_drops`` (motion samples and their gaps),
     ``imu_errors``. ``cpu_time`` is the capture thread's CPU seconds, ``last_error`` the last
     fault as text, ``intrinsics`` the stream's K and ``device_info`` name/serial/firmware/USB.
+
+    Settings come from the camera's config: ``camera.realsense`` (the ``realsense:`` section of
+    the camera in robot.yaml). IMU samples are ``ImuSample``s in the camera's IMU frame;
+    ``T_robot_imu`` maps that frame to the robot's (``drivers.realsense_imu.yaw_rate_robot``).
     """
 
     BACKOFF_START = 0.1  # s, first wait before looking for a GONE device again; doubles up to the cap
     FIRST_FRAME_TIMEOUT_MS = 5000  # a camera just started may take seconds to deliver its first frame
 
-    def __init__(self, camera: CameraConfig, rs_config: Optional[RealSenseConfig] = None,
-                 source: Optional[DeviceSource] = None):
+    def __init__(self, camera: CameraConfig, source: Optional[DeviceSource] = None):
         super().__init__(camera.name)
         self.camera = camera
-        self.config = rs_config or RealSenseConfig()
+        self.config: RealSenseConfig = camera.realsense
         self.config.validate(f"camera '{camera.name}': realsense")
         self.source = source if source is not None else LiveDevice(camera.serial)
         self.stats.update({"drops": 0, "resets": 0, "imu": 0, "imu_drops": 0, "imu_errors": 0})
@@ -430,6 +359,9 @@ class RealSenseCamera(CameraDriver):
         self.intrinsics: Optional[np.ndarray] = None
         self.depth_scale: Optional[float] = None
         self.device_info: Dict[str, str] = {}
+        # IMU frame -> depth optical frame: the device's gyro extrinsics once the IMU streams
+        self.T_camera_imu: np.ndarray = D435I_T_CAMERA_IMU.copy()
+        self.imu_extrinsics_source = "default"  # or "device"
         self.clock = ClockMapper(self.config.clock_window)
         self.ended = threading.Event()  # set when a recording played to its end
         self._rs = None
@@ -445,6 +377,11 @@ class RealSenseCamera(CameraDriver):
         self._logged: set = set()
 
     # ---- public ------------------------------------------------------------------------------
+
+    @property
+    def T_robot_imu(self) -> np.ndarray:
+        """The camera's IMU frame -> robot frame, for ``yaw_rate_robot`` of this camera's gyro."""
+        return self.camera.T_robot_camera @ self.T_camera_imu
 
     @property
     def device(self):
@@ -719,6 +656,8 @@ class RealSenseCamera(CameraDriver):
         if playback is not None:
             playback.resume()
         stream = profile.get_stream(rs.stream.depth).as_video_stream_profile()
+        if self.config.imu_enabled:
+            self._read_imu_extrinsics(device, stream)
         K = intrinsics_to_K(stream.get_intrinsics())
         scale = float(device.first_depth_sensor().get_depth_scale())
         info = describe_device_info(rs, device)
@@ -770,6 +709,23 @@ class RealSenseCamera(CameraDriver):
         sensor.open(chosen)
         sensor.start(self._on_motion)
         return sensor
+
+    def _read_imu_extrinsics(self, device, depth_stream) -> None:
+        """``T_camera_imu`` from the device's gyro -> depth extrinsics, else the D435i default."""
+        rs = self._rs
+        for sensor in device.query_sensors():
+            for p in sensor.get_stream_profiles():
+                if p.stream_type() != rs.stream.gyro:
+                    continue
+                try:
+                    ext = p.get_extrinsics_to(depth_stream)
+                    T = T_from_rs_extrinsics(ext.rotation, ext.translation)
+                except (RuntimeError, ValueError) as e:  # recordings from a software_device carry none
+                    log.info("camera '%s': no gyro extrinsics from the device (%s): D435i default used",
+                             self.name, e)
+                    return
+                self.T_camera_imu, self.imu_extrinsics_source = T, "device"
+                return
 
     def _close(self) -> None:
         s = self._session

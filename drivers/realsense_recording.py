@@ -316,8 +316,9 @@ def simulate_run(robot, scene, camera: str, start_pose: Sequence[float], velocit
     """A simulated drive seen by one camera: depth frames and, if ``imu_rate`` > 0, D435i IMU samples.
 
     The robot moves from ``start_pose`` (x, y, phi) at constant ground-frame velocity
-    (vx, vy, omega). IMU samples are in the camera's optical frame (x right, y down, z forward),
-    as librealsense reports a D435i's motion data: the gyro sees the yaw rate, the accelerometer
+    (vx, vy, omega). IMU samples are in the camera's IMU frame, whose axes librealsense aligns
+    with the depth optical frame (x right, y down, z forward; ``drivers.realsense_imu``), as it
+    reports a D435i's motion data: the gyro sees the yaw rate, the accelerometer
     the specific force of gravity (a level camera at rest reads about (0, -9.8, 0)). Returns
     (frames, imu_samples), times in seconds from 0.
     """

@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 # The default 5 ms switch interval lets the localization thread hold the GIL for up to 5 ms
 # between bytecode checks: a whole control-period's jitter budget. 1 ms bounds that wait.
 GIL_SWITCH_INTERVAL = 0.001
+# D435i (BMI055) yaw-rate variance per sample: white noise ~0.0035 rad/s at 200 Hz plus an
+# uncalibrated bias of up to ~0.01 rad/s, which the filter cannot tell from noise.
+GYRO_VARIANCE = 0.01 ** 2
 
 
 @dataclass
@@ -70,6 +73,7 @@ class AppStats:
     commands_sent: int = 0
     commands_withheld: int = 0
     odometry: int = 0
+    imu_rejected: int = 0
 
 
 class RobotApp:
@@ -137,7 +141,7 @@ class RobotApp:
                 self.stats.frames[cam.name] = 0
                 self.stats.frames_dropped[cam.name] = 0
                 cam.on_state_change = self._camera_state_threadsafe
-                cam.start(self._frame_threadsafe, self._imu_threadsafe)
+                cam.start(self._frame_threadsafe, lambda sample, c=cam: self._imu_threadsafe(c, sample))
             if self.plan is not None:
                 self.core.follow(self.plan)
             elif self.teleop is not None:
@@ -238,8 +242,24 @@ class RobotApp:
         except RuntimeError:
             pass  # the loop is closed: shutting down
 
-    def _imu_threadsafe(self, sample) -> None:
-        pass  # gyro fusion: see robot.controller_core.on_gyro (wired when the camera provides it)
+    def _imu_threadsafe(self, camera: CameraDriver, sample) -> None:
+        if sample.gyro is None:
+            return  # accelerometer samples are not used on a level floor
+        try:
+            self._loop.call_soon_threadsafe(self._imu, camera, sample)
+        except RuntimeError:
+            pass
+
+    def _imu(self, camera: CameraDriver, sample) -> None:
+        from drivers.realsense_imu import yaw_rate_robot
+
+        try:
+            wz = yaw_rate_robot(sample, camera.T_robot_imu)
+        except (AttributeError, ValueError) as e:
+            self.stats.imu_rejected += 1
+            log.debug("camera %s: gyro sample refused: %s", camera.name, e)
+            return
+        self.core.on_gyro(sample.t, wz, GYRO_VARIANCE)
 
     def _camera_state_threadsafe(self, name: str, state: CameraState) -> None:
         try:

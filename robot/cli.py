@@ -31,6 +31,7 @@ COMMAND_MODULES = [
     "robot.cli_chassis",
     "robot.cli_sim",
     "robot.cli_run",
+    "robot.cli_teleop",
 ]
 
 

@@ -124,16 +124,21 @@ def test_first_order_motor_response():
 
 
 def test_watchdog_stops_wheels_within_250ms_of_the_last_command():
+    """Total host silence (no frame at all) after a speed command: by 250 ms the board has
+    tripped, reported it, and the wheels are ramping down; they are still one ramp later."""
     b = board()
     run(b, [5.0, 5.0, 5.0, 5.0], 0.5)
     command(b, [5.0, 5.0, 5.0, 5.0])
     t_cmd = b.t_board
     assert b.omega[0] > 4.9  # up to speed: there is something to stop
-    b.step(0.6)
+    b.step(0.25)
     (trip,) = events(b, "watchdog")
     assert 0.2 - 1e-9 <= trip[0] - t_cmd <= 0.25
-    assert b.flags & fp.StatusFlag.WATCHDOG
-    # ramp at the accel limit from the trip, then the motors settle: stopped well before now
+    assert b.target == [0.0] * 4 and b.flags & fp.StatusFlag.WATCHDOG
+    assert any(m.flags & fp.StatusFlag.WATCHDOG for m in sent(b, fp.Status))  # reported, not just set
+    # ramping down at the accel limit since the trip (40 rad/s^2 for >= 49 ms: <= 3.04 rad/s now)
+    assert max(b.setpoint) <= 5.0 - 40.0 * (t_cmd + 0.25 - trip[0]) + 1e-9 and max(b.omega) < 4.9
+    b.step(5.0 / 40.0 + 5 * b.motor_tau)  # one full ramp plus five motor time constants
     assert b.setpoint == [0.0] * 4
     assert max(abs(w) for w in b.omega) < 0.01
 
@@ -341,6 +346,35 @@ def test_emulator_speaks_the_protocol_over_a_pty():
         assert dec.stats.dropped_frames == 0
         assert emu.true_wheel_speeds[0] > 0.5
         s.close()
+
+
+def test_over_the_wire_clamped_command_is_nacked_and_a_dead_host_is_stopped_by_the_watchdog():
+    """A host process speaks raw bytes: one command beyond the speed limit (clamped, NACKed on the
+    wire), fresh commands at 50 Hz, then it dies (port closed, not one more byte). Timed on the
+    board's own clock."""
+    with FirmwareEmulator(CFG) as emu:
+        s = open_port(emu)
+        dec = fp.Decoder()
+        s.write(fp.encode(fp.Hello(0, 12, seq=0)))
+        read_until(s, dec, lambda g: any(isinstance(m, fp.HelloReply) for m in g))
+        s.write(fp.encode(fp.SetWheelSpeeds.from_rad_s([30.0, -15.0, 6.0, 0.0], seq=1)))
+        got = read_until(s, dec, lambda g: any(isinstance(m, (fp.Ack, fp.Nack)) for m in g))
+        (answer,) = [m for m in got if isinstance(m, (fp.Ack, fp.Nack))]
+        assert isinstance(answer, fp.Nack)
+        assert (answer.ref_id, answer.ref_seq, answer.reason, answer.detail) == (0x02, 1, fp.NackReason.CLAMPED, 0b0001)
+        assert emu.board.target == pytest.approx([20.0, -10.0, 4.0, 0.0])  # applied, scaled as one
+        for i in range(15):
+            s.write(fp.encode(fp.SetWheelSpeeds.from_rad_s([4.0, 4.0, 4.0, 4.0], seq=2 + i)))
+            time.sleep(0.02)
+        s.close()  # the host process died
+        deadline = time.monotonic() + 5.0
+        while not emu.events("watchdog") and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.4)  # a ramp from 4 rad/s (0.1 s) and the motor lag
+        last_cmd = max(t for t, m in emu.received() if isinstance(m, fp.SetWheelSpeeds))
+        (trip,) = emu.events("watchdog")
+        assert 0.2 - 1e-6 <= trip[0] - last_cmd <= 0.25
+        assert max(abs(w) for w in emu.true_wheel_speeds) < 0.05
 
 
 def test_sim_clock_reports_only_when_the_simulation_steps():

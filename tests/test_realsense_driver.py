@@ -13,9 +13,12 @@ robot's 2.55 cannot read); skipped with the reason where it is missing or anothe
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
+import subprocess
+import sys
 import threading
 import time
 from typing import List
@@ -30,11 +33,10 @@ from drivers.realsense_camera import (
     PlaybackFile,
     RealSenseCamera,
     RealSenseConfig,
-    parse_realsense_config,
     pyrealsense2_version,
 )
-from robot.config import load_robot_config
-from robot.config_schema import Section
+from drivers.realsense_imu import D435I_T_CAMERA_IMU, T_from_rs_extrinsics, yaw_rate_robot
+from robot.config import CameraConfig, load_robot_config, parse_robot_config
 from robot.errors import ConfigError, InputError
 from robot.frames import DepthFrame, ImuSample
 from robot.geometry import wrap_angle
@@ -54,6 +56,11 @@ POSE = (0.5, 0.5, 3.0 * math.pi / 4.0)  # sees the north and west walls from ins
 VELOCITY = (0.05, -0.02, 0.1)  # m/s, m/s, rad/s: a slow drive and turn
 N_FRAMES = 16
 IMU_RATE = 200.0
+
+
+def with_rs(camera: CameraConfig, **settings) -> CameraConfig:
+    """The camera's config with these ``realsense:`` settings (what robot.yaml would give it)."""
+    return dataclasses.replace(camera, realsense=RealSenseConfig(**settings))
 
 
 # ---- pure parts: clock mapping and config (no librealsense) ----------------------------------
@@ -106,17 +113,103 @@ def test_clock_mapper_follows_drift_through_its_window():
     assert all(0.0027 < e <= 0.003 + 1e-9 for e in errs[-300:])
 
 
-def test_realsense_config_section_parses_and_rejects_bad_values():
-    cfg = parse_realsense_config(Section({"imu_enabled": True, "decimation": 2, "visual_preset": "default"},
-                                         "cameras[0].realsense", "robot.yaml"))
-    assert cfg.imu_enabled and cfg.decimation == 2 and cfg.visual_preset == "default"
-    assert cfg.frame_timeout_ms == RealSenseConfig().frame_timeout_ms
-    with pytest.raises(ConfigError, match="unknown key.*lazer_power"):
-        parse_realsense_config(Section({"lazer_power": 100}, "cameras[0].realsense", "robot.yaml"))
-    with pytest.raises(ConfigError, match="visual_preset"):
-        parse_realsense_config(Section({"visual_preset": "fast"}, "cameras[0].realsense", "robot.yaml"))
-    with pytest.raises(ConfigError, match="decimation"):
-        parse_realsense_config(Section({"decimation": 9}, "cameras[0].realsense", "robot.yaml"))
+def _robot_yaml(realsense=None):
+    cam = {"name": "front", "width": 848, "height": 480, "fps": 30, "hfov_deg": 87.0, "vfov_deg": 58.0,
+           "mount": {"xyz": [0.1, 0.0, 0.2], "rpy_deg": [0.0, 10.0, 0.0]}}
+    left = dict(cam, name="left", mount={"xyz": [0.0, 0.1, 0.2], "rpy_deg": [0.0, 0.0, 90.0]})
+    if realsense is not None:
+        cam["realsense"] = realsense
+    return {"cameras": [cam, left]}
+
+
+def test_robot_config_carries_each_cameras_realsense_section():
+    robot = parse_robot_config(_robot_yaml({"visual_preset": "default", "laser_power": 120, "imu_enabled": True,
+                                            "decimation": 2, "frame_timeout_ms": 500}), "robot.yaml")
+    rs_front, rs_left = robot.camera("front").realsense, robot.camera("left").realsense
+    assert (rs_front.visual_preset, rs_front.laser_power, rs_front.imu_enabled) == ("default", 120.0, True)
+    assert (rs_front.decimation, rs_front.frame_timeout_ms) == (2, 500)
+    assert rs_front.spatial_filter is False and rs_front.emitter_enabled is True  # unset keys: defaults
+    assert rs_left == RealSenseConfig()  # no section: all defaults
+    # The driver takes its settings from the camera's config.
+    cam = RealSenseCamera(robot.camera("front"), PlaybackFile("unused.bag"))
+    assert cam.config is rs_front and cam.clock.window == rs_front.clock_window
+
+
+@pytest.mark.parametrize("section,match", [
+    ({"lazer_power": 100}, r"robot.yaml: cameras\[0\]\.realsense: unknown key.*lazer_power"),
+    ({"visual_preset": "fast"}, r"cameras\[0\]\.realsense: 'visual_preset' must be one of"),
+    ({"decimation": 9}, r"cameras\[0\]\.realsense: 'decimation' must be 1 \(off\) to 8"),
+    ({"frame_timeout_ms": 10}, r"'frame_timeout_ms' must be >= 50"),
+    ({"imu_enabled": "yes"}, r"'imu_enabled' must be true or false"),
+    ({"laser_power": -1}, r"'laser_power' must be >= 0"),
+    ([1, 2], r"cameras\[0\]\.realsense: expected a mapping"),
+])
+def test_robot_config_rejects_a_bad_realsense_section(section, match):
+    with pytest.raises(ConfigError, match=match):
+        parse_robot_config(_robot_yaml(section), "robot.yaml")
+
+
+def test_a_bad_realsense_config_built_in_code_is_refused_by_the_driver(robot):
+    with pytest.raises(ConfigError, match="camera 'front': realsense: 'decimation'"):
+        RealSenseCamera(with_rs(robot.camera("front"), decimation=0), PlaybackFile("unused.bag"))
+
+
+def test_robot_config_loads_without_pyrealsense2(repo_root):
+    """The robot config (and its realsense sections) must load where librealsense is missing."""
+    code = ("import sys; sys.modules['pyrealsense2'] = None\n"  # any import of it now fails
+            "from robot.config import parse_robot_config\n"
+            "r = parse_robot_config({'cameras': [{'name': 'c', 'width': 848, 'height': 480, 'fps': 30, "
+            "'hfov_deg': 87, 'vfov_deg': 58, 'mount': {'xyz': [0, 0, 0], 'rpy_deg': [0, 0, 0]}, "
+            "'realsense': {'imu_enabled': True}}]})\n"
+            "assert r.cameras[0].realsense.imu_enabled\n"
+            "import drivers.realsense_camera\n"  # the driver module too: pyrealsense2 is lazy
+            "print('ok')\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=str(repo_root), capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
+
+
+# ---- IMU frame: robot-frame yaw rate from a camera's gyro ---------------------------------------
+
+
+@pytest.mark.parametrize("pitch_deg", [0.0, 30.0])
+def test_yaw_rate_robot_undoes_the_camera_mount(pitch_deg):
+    """A front camera pitched nose-down by p: worked by hand, its optical axes in R are
+    x = (0, -1, 0), y = (-sin p, 0, -cos p), z = (cos p, 0, -sin p), so a robot yawing at wz
+    reads gyro (0, -cos p wz, -sin p wz) in the (depth-aligned) IMU frame."""
+    wz = 0.7
+    p = math.radians(pitch_deg)
+    cam = CameraConfig("front", 848, 480, 30.0, 87.0, 58.0, (0.12, 0.0, 0.2), (0.0, pitch_deg, 0.0))
+    T_robot_imu = cam.T_robot_camera @ D435I_T_CAMERA_IMU
+    sample = ImuSample(t=1.0, gyro=(0.0, -math.cos(p) * wz, -math.sin(p) * wz))
+    assert yaw_rate_robot(sample, T_robot_imu) == pytest.approx(wz, abs=1e-12)
+    # A camera looking left (yaw 90 deg), level: image right is robot forward, image down is -z.
+    left = CameraConfig("left", 848, 480, 30.0, 87.0, 58.0, (0.0, 0.1, 0.2), (0.0, 0.0, 90.0))
+    assert yaw_rate_robot(ImuSample(t=1.0, gyro=(0.0, -wz, 0.0)), left.T_robot_camera) == pytest.approx(wz)
+    with pytest.raises(ValueError, match="no gyro"):
+        yaw_rate_robot(ImuSample(t=1.0, accel=(0.0, -9.8, 0.0)), T_robot_imu)
+
+
+def test_d435i_default_imu_frame_is_the_depth_axes_a_few_mm_away():
+    R, t = D435I_T_CAMERA_IMU[:3, :3], D435I_T_CAMERA_IMU[:3, 3]
+    assert np.array_equal(R, np.eye(3))  # librealsense rotates IMU samples into the depth axes
+    assert 0.01 < np.linalg.norm(t) < 0.02
+
+
+@needs_rs
+def test_rs_extrinsics_are_read_column_major_like_librealsense():
+    """Checked against librealsense's own rs2_transform_point_to_point, with a rotation that is not
+    symmetric (a transposed reading would fail)."""
+    c, s = math.cos(0.5), math.sin(0.5)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array([[1, 0, 0], [0, 0.8, -0.6], [0, 0.6, 0.8]])
+    ext = rs.extrinsics()
+    ext.rotation = [float(v) for v in R.T.ravel()]  # column-major, as librealsense stores it
+    ext.translation = [0.01, -0.02, 0.03]
+    T = T_from_rs_extrinsics(ext.rotation, ext.translation)
+    for p in ([1.0, 2.0, 3.0], [-0.5, 0.25, 4.0]):
+        expected = rs.rs2_transform_point_to_point(ext, p)
+        np.testing.assert_allclose(T[:3, :3] @ p + T[:3, 3], expected, atol=1e-6)
+    with pytest.raises(ValueError):
+        T_from_rs_extrinsics([1.0] * 8, [0.0] * 3)
 
 
 # ---- recordings of a simulated run -------------------------------------------------------------
@@ -169,8 +262,7 @@ def play(robot, path, camera="front", source=None, timeout=30.0, **cfg):
     arrivals: List[float] = []
     imu: List[ImuSample] = []
     states: List[CameraState] = []
-    cam = RealSenseCamera(robot.camera(camera), RealSenseConfig(frame_timeout_ms=150, **cfg),
-                          source or PlaybackFile(path))
+    cam = RealSenseCamera(with_rs(robot.camera(camera), frame_timeout_ms=150, **cfg), source or PlaybackFile(path))
     cam.on_state_change = lambda name, s: states.append(s)
 
     def on_frame(f):
@@ -270,7 +362,7 @@ def test_slow_consumer_keeps_the_device_clock_spacing(robot, sim_run):
         frames.append(f)
         time.sleep(0.05)  # > 1/30 s per frame
 
-    cam = RealSenseCamera(robot.camera("front"), RealSenseConfig(frame_timeout_ms=150), PlaybackFile(src["path"]))
+    cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=150), PlaybackFile(src["path"]))
     cam.start(on_frame)
     try:
         assert cam.wait_ended(30)
@@ -296,10 +388,18 @@ def test_imu_samples_arrive_complete_with_host_timestamps(robot, sim_run):
     # The robot turns left at 0.1 rad/s: a level camera's gyro sees it about its -y (down) axis.
     assert gyro[0].gyro[1] == pytest.approx(-VELOCITY[2], abs=1e-6)
     assert accel[0].accel[1] == pytest.approx(-9.80665, abs=1e-4)
+    # What the app feeds the EKF: the robot-frame yaw rate, through the camera's IMU extrinsics
+    # (a software_device recording carries none: the D435i default, identity rotation).
+    assert all(type(s) is ImuSample for s in imu)
+    assert cam.imu_extrinsics_source == "default"
+    np.testing.assert_array_equal(cam.T_robot_imu, robot.camera("front").T_robot_camera @ D435I_T_CAMERA_IMU)
+    rates = [yaw_rate_robot(s, cam.T_robot_imu) for s in gyro]
+    np.testing.assert_allclose(rates, VELOCITY[2], atol=1e-6)
     for stream in (gyro, accel):
         t = np.array([s.t for s in stream])
         assert np.all(np.diff(t) > 0)
         assert t[-1] <= time.monotonic()
+    assert abs(gyro[0].t - frames[0].t_capture) < 0.5  # one host clock for depth and IMU
 
 
 @needs_rs
@@ -366,7 +466,7 @@ def test_stalled_stream_is_reported_and_recovers(robot, rt_path):
     with nothing lost and no reconnect."""
     frames: List[DepthFrame] = []
     states: List[CameraState] = []
-    cam = RealSenseCamera(robot.camera("front"), RealSenseConfig(frame_timeout_ms=100, stalls_before_reset=1000),
+    cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100, stalls_before_reset=1000),
                           PlaybackFile(rt_path, real_time=True))
     cam.on_state_change = lambda name, s: states.append(s)
 
@@ -397,7 +497,7 @@ def test_stuck_stream_is_restarted_by_itself(robot, rt_path):
     """Frames never come back: after ``stalls_before_reset`` timeouts the driver restarts the stream
     (a recording cannot be hardware-reset), and streaming resumes without anyone's help."""
     frames: List[DepthFrame] = []
-    cam = RealSenseCamera(robot.camera("front"), RealSenseConfig(frame_timeout_ms=100, stalls_before_reset=2),
+    cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100, stalls_before_reset=2),
                           PlaybackFile(rt_path, real_time=True))
     paused = []
 
@@ -441,8 +541,7 @@ class ResettablePlayback(PlaybackFile):
 def test_stuck_camera_gets_a_hardware_reset_then_is_reopened(robot, rt_path):
     source = ResettablePlayback(rt_path)
     states: List[CameraState] = []
-    cam = RealSenseCamera(robot.camera("front"), RealSenseConfig(frame_timeout_ms=100, stalls_before_reset=2),
-                          source)
+    cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100, stalls_before_reset=2), source)
     cam.on_state_change = lambda name, s: states.append(s)
     done = []
 
@@ -471,7 +570,7 @@ def test_vanished_device_is_reported_gone_and_recovered_when_it_returns(robot, r
     away = tmp_path / "unplugged.bag"
     shutil.copy(rt_path, path)
     frames: List[DepthFrame] = []
-    cam = RealSenseCamera(robot.camera("front"), RealSenseConfig(frame_timeout_ms=100, stalls_before_reset=1000),
+    cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100, stalls_before_reset=1000),
                           PlaybackFile(path, real_time=True))
     gone = []
 
@@ -511,7 +610,7 @@ class WatchedPlayback(PlaybackFile):
 def test_devices_changed_event_wakes_the_reconnect_at_once(robot, sim_run, tmp_path):
     path = tmp_path / "front.bag"
     source = WatchedPlayback(path)  # not there yet: the camera starts GONE
-    cam = RealSenseCamera(robot.camera("front"), RealSenseConfig(frame_timeout_ms=100), source)
+    cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100), source)
     cam.BACKOFF_START = 60.0  # without the event, the next look would be a minute away
     cam.start(lambda f: None)
     try:
@@ -535,7 +634,7 @@ def test_missing_camera_is_gone_not_a_crash():
     cam_cfg = CameraConfig("front", 848, 480, 30.0, 87.0, 58.0, (0.1, 0.0, 0.1), (0.0, 0.0, 0.0), serial="123456789")
     source = LiveDevice("123456789")
     assert not source.is_present()
-    cam = RealSenseCamera(cam_cfg, RealSenseConfig(), source)
+    cam = RealSenseCamera(cam_cfg, source)
     cam.start(lambda f: None)
     try:
         assert _wait_for(lambda: cam.state is CameraState.GONE)
