@@ -30,7 +30,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 
 from drivers.camera_base import CameraDriver, CameraState
-from robot import sd_notify
+from robot import mcap_schema, sd_notify
 from robot.config import RobotConfig
 from robot.controller_core import ControllerCore
 from robot.encoder_odometry import quantisation_variance
@@ -108,6 +108,7 @@ class RobotApp:
         self._watchdog = sd_notify.WatchdogPinger()
         self._stall_control_until = 0.0  # test hook: the control task sleeps through its ticks
         self.last_output = None
+        self._record_seq = 0
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -134,8 +135,8 @@ class RobotApp:
             sd_notify.status("starting: connecting to the motor board")
             if not await self._connect_chassis():
                 return 1
-            self._init_pose()
             self._write_config_record()
+            self._init_pose()
             for cam in self.cameras:
                 self._slots[cam.name] = None
                 self.stats.frames[cam.name] = 0
@@ -204,6 +205,8 @@ class RobotApp:
             log.warning("no initial pose given: the robot will not move until one is set")
             return
         self.core.set_pose(t, *pose, cov)
+        self._record("status", t, {"t": t, "event": "set_pose", "x": pose[0], "y": pose[1], "phi": pose[2],
+                                   "cov": cov.ravel().tolist(), "source": source})
         log.info("initial pose (%.3f, %.3f, %.1f deg) from %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     async def _shutdown(self, tasks: List[asyncio.Task]) -> None:
@@ -278,8 +281,6 @@ class RobotApp:
         if self._slots.get(frame.camera) is not None:
             self.stats.frames_dropped[frame.camera] = self.stats.frames_dropped.get(frame.camera, 0) + 1
         self._slots[frame.camera] = frame
-        if self.recorder is not None:
-            self.recorder.write_depth(frame.t_capture, frame)
         self._new_frame.set()
 
     # -- tasks ----------------------------------------------------------------------------------
@@ -290,9 +291,8 @@ class RobotApp:
             odo = await q.get()
             self.stats.odometry += 1
             self.core.on_odometry(odo, quantisation_variance(self.robot.chassis.ticks_per_rev, odo.dt))
-            if self.recorder is not None:
-                self.recorder.write_odometry(odo.t, {"t": odo.t, "angles": list(odo.angles), "speeds": list(odo.speeds),
-                                                     "dt": odo.dt})
+            self._record("odometry", odo.t, {"t": odo.t, "wheel_speeds": list(odo.speeds), "angles": list(odo.angles),
+                                             "dt": odo.dt, "t_board": odo.t_board})
 
     async def _localization_task(self) -> None:
         loop = self._loop
@@ -307,6 +307,8 @@ class RobotApp:
                 if not self.core.initialized:
                     continue
                 (x, y, phi), P = self.core.coarse_pose(frame.t_capture)
+                if self.recorder is not None:
+                    self.recorder.write_depth(frame.t_capture, frame)  # only the frames the localizer uses
                 try:
                     result = await loop.run_in_executor(self._executor, self.localizer.localize, [frame], (x, y, phi), P,
                                                         self.options.method)
@@ -318,11 +320,12 @@ class RobotApp:
                 if len(self.stats.localize_ms) > 10000:
                     del self.stats.localize_ms[:5000]
                 report = self.core.on_localization(result, frame.t_capture, name)
-                if self.recorder is not None:
-                    self.recorder.write_planes(frame.t_capture, {
-                        "t_capture": frame.t_capture, "camera": name, "status": result.status,
-                        "planes": [p.to_json() for p in result.planes], "accepted": report.accepted,
-                        "rejected": [list(r) for r in report.rejected]})
+                # everything replay needs to redo this localization bit for bit, and what it gave
+                self._record("planes", frame.t_capture, {
+                    "t": frame.t_capture, "camera": name, "frame_number": frame.frame_number, "method": self.options.method,
+                    "coarse": [x, y, phi], "coarse_cov": np.asarray(P).ravel().tolist(), "status": result.status,
+                    "planes": [p.to_json() for p in result.planes], "accepted": report.accepted,
+                    "rejected": [list(r) for r in report.rejected]})
                 if self.live_view is not None:
                     self.live_view.publish_planes(frame.t_capture, name, [p.to_json() for p in result.planes])
 
@@ -363,9 +366,9 @@ class RobotApp:
         self._watchdog.tick()  # only a control loop that ticks keeps systemd from restarting us
         if self.recorder is not None:
             c = out.command
-            self.recorder.write_cmd(t, {"t": t, "vx": c.vx, "vy": c.vy, "wz": c.wz, "state": c.state,
-                                        "wheels": list(out.wheels) if out.wheels else None, "scale": out.speed_scale,
-                                        "reason": out.reason})
+            self._record("cmd", t, {"t": t, "wheel_speeds": list(out.wheels) if out.wheels else None,
+                                    "sent": out.wheels is not None, "vx": c.vx, "vy": c.vy, "wz": c.wz,
+                                    "state": c.state, "scale": out.speed_scale, "reason": out.reason})
         if self.live_view is not None:
             self.live_view.publish_cmd(t, out.command.vx, out.command.vy, out.command.wz)
         if self.options.stop_when_done and self.core.finished:
@@ -385,11 +388,10 @@ class RobotApp:
                 if self.pose_store is not None:
                     self.pose_store.save(t, x, y, phi, P, self.plane_map.source)
                 if self.recorder is not None:
-                    self.recorder.write_pose(t, x, y, phi, P, q.as_dict())
+                    self._record("pose", t, mcap_schema.pose_message(t, x, y, phi, P, q.state))
                 if self.live_view is not None:
                     self.live_view.publish_pose(t, x, y, phi, P, q.state, q.reason)
-            if self.recorder is not None:
-                self.recorder.write_status(t, self.status(t))
+            self._record("status", t, self.status(t))
 
     # -- reporting ------------------------------------------------------------------------------
 
@@ -411,11 +413,23 @@ class RobotApp:
         cams = ", ".join(f"{k} {v}" for k, v in s["cameras"].items())
         return f"{s['quality']}{reason}; {pose}; chassis {s['chassis']}; cameras: {cams or 'none'}"
 
+    def _record(self, kind: str, t: float, message: Dict[str, object]) -> None:
+        """Record with a sequence number: replay redoes the core's calls in exactly this order."""
+        if self.recorder is None:
+            return
+        self._record_seq += 1
+        message["seq"] = self._record_seq
+        self.recorder.write(_TOPICS[kind], t, message)
+
     def _write_config_record(self) -> None:
         if self.recorder is None:
             return
         self.recorder.write_config(time.monotonic(), _read_text(self.robot.source), _read_text(self.plane_map.source),
                                    robot_config_path=self.robot.source, map_path=self.plane_map.source)
+
+
+_TOPICS = {"odometry": mcap_schema.TOPIC_ODOMETRY, "planes": mcap_schema.TOPIC_PLANES, "cmd": mcap_schema.TOPIC_CMD,
+           "pose": mcap_schema.TOPIC_POSE, "status": mcap_schema.TOPIC_STATUS}
 
 
 def _read_text(path: str) -> str:
