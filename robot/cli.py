@@ -32,6 +32,7 @@ COMMAND_MODULES = [
     "robot.cli_sim",
     "robot.cli_run",
     "robot.cli_teleop",
+    "robot.cli_replay",
 ]
 
 
