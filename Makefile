@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(VENV)/bin/robotctl demo
+	$(VENV)/bin/robotctl sim --path config/paths/paper_4_3.yaml --runs 15
 
 lint: $(STAMP)
 	$(PY) -m ruff check robot drivers firmware_protocol tests scripts
