@@ -52,6 +52,7 @@ from firmware_protocol import (
     encode,
 )
 from robot.config import ChassisConfig
+from robot.encoder_odometry import EncoderOdometry, WheelOdometry, wrap_delta_i32  # noqa: F401 (re-exported)
 from robot.errors import DriverError
 
 log = logging.getLogger(__name__)
@@ -72,17 +73,6 @@ class LinkState(enum.Enum):
     READY = "ready"  # handshake done and reports arriving: commands are allowed
     LOST = "lost"  # was ready; reports stopped or the port failed: reconnecting with backoff
     FAULT = "fault"  # the board answers but cannot be driven (protocol version, ticks per rev)
-
-
-@dataclass(frozen=True)
-class WheelOdometry:
-    """One encoder report turned into wheel motion. Wheel order FL, FR, RL, RR."""
-
-    t: float  # host monotonic time (s) the board sampled the encoders at
-    angles: Tuple[float, float, float, float]  # cumulative wheel angles (rad), continuous across reconnects
-    speeds: Tuple[float, float, float, float]  # mean wheel speeds (rad/s) over dt
-    dt: float  # s since the previous sample, on the board's clock
-    t_board: float  # board time (s), unwrapped
 
 
 @dataclass(frozen=True)
@@ -110,11 +100,6 @@ class ChassisStatus:
 def reconnect_delay(attempt: int, cap: float) -> float:
     """Seconds to wait before reconnect attempt ``attempt`` (0, 1, ...): doubling, capped."""
     return min(BACKOFF_START * 2.0 ** min(attempt, 30), cap)
-
-
-def wrap_delta_i32(new: int, old: int) -> int:
-    """Signed difference of two int32 counters that may have wrapped in between."""
-    return ((new - old + 0x80000000) & 0xFFFFFFFF) - 0x80000000
 
 
 class BoardClock:
@@ -202,9 +187,8 @@ class SerialChassis:
         self._closing = False
         # odometry state
         self._clock = BoardClock()
-        self._cum_ticks = [0, 0, 0, 0]  # host-side cumulative ticks: survive board resets
-        self._prev_ticks: Optional[Tuple[int, ...]] = None
-        self._prev_board_s = 0.0
+        # host-side cumulative angles: continuous across board resets and reconnects
+        self._encoders = EncoderOdometry(self.config.ticks_per_rev, self.config.max_wheel_speed)
         self._prev_report: Optional[Tuple[int, float]] = None  # (t_us, host rx time) of the last report
         self._rx_seq: Optional[int] = None  # seq of the board's last frame: it counts every frame it sends
         self._fresh_session = False  # the next report is the first since a handshake
@@ -596,7 +580,7 @@ class SerialChassis:
             return  # reports before the handshake belong to no session: they set no baseline
         self._last_report_rx = t_rx
         if self._prev_report is not None and self._board_jumped(m.t_us, t_rx):
-            self._prev_ticks = None
+            self._encoders.reset_baseline()
             self._clock.reset()
             self._counters["board_resets"] += 1
             if not self._fresh_session:
@@ -606,26 +590,12 @@ class SerialChassis:
         board_s = self._clock.unwrap(m.t_us)
         latency = _REPORT_WIRE_BYTES * 10.0 / self.config.baud
         t = self._clock.to_host(board_s, t_rx, latency)
-        if self._prev_ticks is None:
-            self._prev_ticks = m.ticks
-            self._prev_board_s = board_s
+        before = self._encoders.implausible
+        sample = self._encoders.update(m.ticks, board_s, t)
+        if self._encoders.implausible != before:
+            self._counters["implausible_reports"] += 1  # faster than any wheel: counters reset or garbage
+        if sample is None:
             return
-        dt = board_s - self._prev_board_s
-        if dt <= 0.0:
-            return
-        k = _TWO_PI / self.config.ticks_per_rev
-        d = [wrap_delta_i32(n, o) for n, o in zip(m.ticks, self._prev_ticks)]
-        if max(abs(x) for x in d) * k > 3.0 * self.config.max_wheel_speed * dt + 20 * k:
-            # faster than any wheel can turn: counters reset or garbage; never integrate it
-            self._prev_ticks = m.ticks
-            self._prev_board_s = board_s
-            self._counters["implausible_reports"] += 1
-            return
-        self._cum_ticks = [c + x for c, x in zip(self._cum_ticks, d)]
-        self._prev_ticks = m.ticks
-        self._prev_board_s = board_s
-        sample = WheelOdometry(t=t, angles=tuple(c * k for c in self._cum_ticks),
-                               speeds=tuple(x * k / dt for x in d), dt=dt, t_board=board_s)
         self._counters["odometry_samples"] += 1
         if self.on_odometry is not None:
             self.on_odometry(sample)
