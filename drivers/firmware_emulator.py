@@ -68,8 +68,12 @@ class BoardModel:
                  seed: int = 0, report_period: float = 0.01, status_period: float = 0.1,
                  battery_v: float = 12.0, t0_us: int = 0, tick_offset: Sequence[int] = (0, 0, 0, 0),
                  protocol_version: int = PROTOCOL_VERSION, ticks_per_rev: Optional[int] = None,
-                 max_wheel_speed: Optional[float] = None, max_wheel_accel: Optional[float] = None):
+                 max_wheel_speed: Optional[float] = None, max_wheel_accel: Optional[float] = None,
+                 substep_us: int = SUBSTEP_US):
         cfg = config or ChassisConfig()
+        # 1 ms is the firmware's loop; the faster-than-real-time experiment may take coarser
+        # steps (the motor response and the arc integration are exact per step).
+        self.substep_us = int(substep_us)
         self.r = cfg.wheel_radius
         self.L = cfg.half_wheelbase + cfg.half_track
         self.ticks_per_rev = int(ticks_per_rev or cfg.ticks_per_rev)
@@ -177,7 +181,7 @@ class BoardModel:
         n = int(total)
         self._frac_us = total - n
         while n > 0:
-            h = min(n, SUBSTEP_US)
+            h = min(n, self.substep_us)
             self._substep(h)
             n -= h
 

@@ -32,6 +32,7 @@ class WorldSettings:
     decimation: int = 4  # render at 1/d resolution like librealsense's decimation filter (speed)
     clutter: int = 0  # random boxes on the floor
     motor_tau: float = 0.03  # s, first-order motor response
+    board_substep: float = 0.005  # s per physics step (the firmware runs 1 ms; 5 ms is exact enough here and 5x faster)
 
 
 class SimWorld:
@@ -44,7 +45,8 @@ class SimWorld:
         rng = np.random.default_rng(settings.seed)
         radius_error = tuple(float(v) for v in rng.normal(0.0, settings.radius_error_std, 4))
         self.board = board or BoardModel(robot.chassis, radius_error=radius_error, slip_noise=settings.slip_noise,
-                                         seed=settings.seed, motor_tau=settings.motor_tau)
+                                         seed=settings.seed, motor_tau=settings.motor_tau,
+                                         substep_us=int(round(settings.board_substep * 1e6)))
         self.board.pose = tuple(float(v) for v in start)  # type: ignore[assignment]
         clutter = random_clutter(plane_map, settings.clutter, rng, keep_clear=[tuple(start[:2])]) if settings.clutter else ()
         self.scene = SimScene(plane_map, clutter=clutter)
