@@ -11,6 +11,9 @@ Threads and tasks:
 - the control task ticks at ``control.rate`` on absolute deadlines and is the only sender of
   wheel commands, the only source of the systemd watchdog ping, and the place health is applied.
 
+Operator: SIGUSR1 pauses the path (brake within the limits and hold), SIGUSR2 resumes it
+(``systemctl kill -s SIGUSR1 robot-controller``).
+
 Shutdown (SIGINT/SIGTERM, the mission's end, or ``request_stop``): the control task stops, the
 wheels get STOP (the board ACKs it), cameras stop, the pose is saved, the recording is closed.
 """
@@ -117,6 +120,23 @@ class RobotApp:
             self.exit_reason = reason
             self._loop.call_soon_threadsafe(self._stop.set)
 
+    def pause(self) -> None:
+        """Brake to a stop within the limits and hold (path following); SIGUSR1 does this."""
+        if self.core.trajectory is not None:
+            self.core.trajectory.pause()
+            log.info("paused by operator")
+
+    def resume(self) -> None:
+        """Continue the path after ``pause``; SIGUSR2 does this."""
+        if self.core.trajectory is not None:
+            self.core.trajectory.resume()
+            log.info("resumed by operator")
+
+    def abort(self, reason: str = "aborted by operator") -> None:
+        if self.core.trajectory is not None:
+            self.core.trajectory.abort(reason)
+            log.info("%s", reason)
+
     def stall_control_loop(self, seconds: float) -> None:
         """Test hook: make the control task miss its ticks (a hung loop) for ``seconds``."""
         self._stall_control_until = time.monotonic() + seconds
@@ -130,6 +150,8 @@ class RobotApp:
         if self.options.install_signal_handlers:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._loop.add_signal_handler(sig, self.request_stop, f"signal {signal.Signals(sig).name}")
+            self._loop.add_signal_handler(signal.SIGUSR1, self.pause)
+            self._loop.add_signal_handler(signal.SIGUSR2, self.resume)
         tasks: List[asyncio.Task] = []
         try:
             sd_notify.status("starting: connecting to the motor board")
@@ -233,7 +255,7 @@ class RobotApp:
         if self.recorder is not None:
             self.recorder.close()
         if self.options.install_signal_handlers and self._loop is not None:
-            for sig in (signal.SIGINT, signal.SIGTERM):
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
                 self._loop.remove_signal_handler(sig)
         log.info("stopped: %s", self.exit_reason or "done")
 

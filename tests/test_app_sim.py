@@ -144,6 +144,31 @@ def test_sigterm_during_motion_stops_the_wheels():
     assert max(abs(w) for w in setpoints) == 0.0 and max(abs(w) for w in after) < 0.05
 
 
+def test_sigusr1_pauses_and_sigusr2_resumes_the_path():
+    samples = []
+    opts = AppOptions(install_signal_handlers=True)
+    with sim_rig(ROBOT, ARENA, (0.3, 0.6, 0.0), RealtimeSimSettings(fps=10, decimation=4), opts, plan=SHORT,
+                 on_tick=_watch(samples)) as rig:
+        emu = rig.emulator
+        marks = {}
+
+        def probe():
+            marks["paused_speeds"] = emu.true_wheel_speeds
+            marks["paused_pose"] = emu.pose
+
+        def later():
+            marks["still_pose"] = emu.pose
+
+        rc = _run(rig, 40.0, [(1.5, lambda: os.kill(os.getpid(), signal.SIGUSR1)), (3.0, probe), (4.0, later),
+                              (4.1, lambda: os.kill(os.getpid(), signal.SIGUSR2))])
+        truth = emu.pose
+    assert rc == 0 and rig.app.exit_reason == "path complete"
+    assert any(s[5] == "paused" for s in samples)
+    assert max(abs(w) for w in marks["paused_speeds"]) < 0.05  # braked and holding
+    assert math.hypot(marks["still_pose"][0] - marks["paused_pose"][0], marks["still_pose"][1] - marks["paused_pose"][1]) < 1e-3
+    assert math.hypot(truth[0] - 0.4, truth[1] - 0.5) < 0.010  # resumed and finished
+
+
 def test_malformed_path_file_is_refused_before_anything_starts(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("start: {x: 0, y: 0}\nwaypoints:\n  - {x: 0.5, y: 0.5, speed: fast}\n")
