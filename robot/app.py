@@ -156,7 +156,7 @@ class RobotApp:
         try:
             sd_notify.status("starting: connecting to the motor board")
             if not await self._connect_chassis():
-                return 1
+                return 0 if self._stop.is_set() else 1  # stopped while waiting is a normal end
             self._write_config_record()
             self._init_pose()
             for cam in self.cameras:
@@ -187,6 +187,7 @@ class RobotApp:
         from robot.errors import DriverError
 
         t0 = time.monotonic()
+        last_error, attempts = "", 0
         while not self._stop.is_set():
             try:
                 await self.chassis.connect()
@@ -198,7 +199,10 @@ class RobotApp:
                     log.error("%s", self.exit_reason)
                     return False
                 sd_notify.status(f"waiting for the motor board: {e}")
-                log.warning("motor board not reachable (%s); retrying in %.1f s", e, self.options.connect_retry)
+                attempts += 1
+                if str(e) != last_error or attempts % 60 == 0:  # the journal gets news, not a flood
+                    log.warning("motor board not reachable (%s); retrying every %.1f s", e, self.options.connect_retry)
+                last_error = str(e)
                 try:
                     await asyncio.wait_for(self._stop.wait(), self.options.connect_retry)
                 except asyncio.TimeoutError:
