@@ -42,14 +42,14 @@ from typing import TYPE_CHECKING, Any, Callable, Deque, Dict, List, Optional, Tu
 import numpy as np
 
 from drivers.camera_base import CameraDriver, CameraState, FrameCallback, ImuCallback
-from drivers.realsense_config import (  # noqa: F401  (re-exported: the driver's settings)
+from drivers.realsense_imu import D435I_T_CAMERA_IMU, T_from_rs_extrinsics
+from robot.errors import DriverError
+from robot.frames import DepthFrame, ImuSample
+from robot.realsense_config import (  # noqa: F401  (re-exported: the driver's settings)
     VISUAL_PRESETS,
     RealSenseConfig,
     parse_realsense_config,
 )
-from drivers.realsense_imu import D435I_T_CAMERA_IMU, T_from_rs_extrinsics
-from robot.errors import DriverError
-from robot.frames import DepthFrame, ImuSample
 
 if TYPE_CHECKING:  # only for annotations: the driver module stays importable on its own
     from robot.config import CameraConfig

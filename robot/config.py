@@ -13,12 +13,12 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 
-from drivers.realsense_config import RealSenseConfig, parse_realsense_config
 from robot.config_schema import Section, load_yaml_file
 from robot.ekf import FilterConfig
 from robot.geometry import mount_to_T_robot_camera
 from robot.health import HealthConfig
 from robot.quality import QualityConfig
+from robot.realsense_config import RealSenseConfig, parse_realsense_config
 from robot.trajectory import ControlConfig
 
 

@@ -15,7 +15,7 @@ Pure (no pyrealsense2, no numpy), so the robot config loads on machines without 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from robot.config_schema import Section
 from robot.errors import ConfigError
@@ -64,9 +64,6 @@ class RealSenseConfig:
             raise ConfigError(f"{where}: 'clock_window' must be > 0, got {self.clock_window}")
         if self.gyro_fps <= 0 or self.accel_fps <= 0:
             raise ConfigError(f"{where}: 'gyro_fps' and 'accel_fps' must be > 0")
-
-
-REALSENSE_CONFIG_FIELDS = tuple(f.name for f in fields(RealSenseConfig))
 
 
 def parse_realsense_config(sec: Section) -> RealSenseConfig:
