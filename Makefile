@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[test,realsense,viz,record]"
+	$(PY) -m pip install -q -e ".[test,realsense,viz,record,live]"
 	$(PY) -m pip install -q -e ".[bim]" || echo "note: ifcopenshell is not installable for this Python; IFC import tests will skip"
 	touch $(STAMP)
 

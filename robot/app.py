@@ -37,6 +37,7 @@ from robot import mcap_schema, sd_notify
 from robot.config import RobotConfig
 from robot.controller_core import ControllerCore
 from robot.encoder_odometry import quantisation_variance
+from robot.errors import DriverError
 from robot.frames import DepthFrame
 from robot.localizer import Localizer
 from robot.path_file import PathPlan
@@ -170,7 +171,11 @@ class RobotApp:
             elif self.teleop is not None:
                 self.core.teleoperate()
             if self.live_view is not None:
-                await self.live_view.start(self.plane_map)
+                try:
+                    await self.live_view.start(self.plane_map)
+                except DriverError as e:  # an engineer's view must never keep the robot from running
+                    log.warning("live view off: %s", e)
+                    self.live_view = None
             tasks = [self._loop.create_task(self._odometry_task(), name="odometry"),
                      self._loop.create_task(self._control_task(), name="control"),
                      self._loop.create_task(self._status_task(), name="status")]
@@ -184,8 +189,6 @@ class RobotApp:
             await self._shutdown(tasks)
 
     async def _connect_chassis(self) -> bool:
-        from robot.errors import DriverError
-
         t0 = time.monotonic()
         last_error, attempts = "", 0
         while not self._stop.is_set():

@@ -33,6 +33,7 @@ COMMAND_MODULES = [
     "robot.cli_run",
     "robot.cli_teleop",
     "robot.cli_replay",
+    "robot.cli_bench",
 ]
 
 
