@@ -60,6 +60,8 @@ def cmd_sim(args) -> int:
     bad = [m for m in modes if m not in ("vision", "odometry")]
     if bad or not modes:
         raise ConfigError(f"--modes: unknown mode(s) {', '.join(bad) or '(none)'} (choose from vision, odometry)")
+    if args.record and not args.realtime:
+        raise ConfigError("--record records one run of the app: use it with --realtime")
     if args.realtime:
         from robot.sim_realtime import run_realtime
 
