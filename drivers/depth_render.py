@@ -4,7 +4,21 @@ The scene is the map's polygons plus what a real site adds and the map does not 
 floor, a backdrop beyond the walls (a room around the arena) and clutter boxes. Each polygon is
 clipped to the frustum, rasterized, and its exact depth along each pixel ray written through a
 z-buffer, so occlusion and partial views are exact. Noise follows the stereo model
-sigma_z = z^2 s / (f_x b), with dropouts and flying pixels at depth edges.
+sigma_z = z^2 s / (f_x b), drawn where a stereo camera makes it: a Gaussian error of s pixels in
+disparity (so Gaussian in 1/z, slightly skewed in z), with dropouts and flying pixels at depth
+edges.
+
+Map polygons are one-sided (DESIGN.md section 3: a face is seen from its normal's side; a real
+wall is two faces in an imported map), so a map face seen from behind is not drawn: otherwise a
+camera looking through a door would see the back of the wall's far face, a surface one wall
+thickness behind the opening that no real camera sees. Clutter boxes, floor and backdrop are
+closed or enclosing surfaces and stay double-sided.
+
+``decimation`` renders what librealsense's decimation filter delivers: a frame of W/d x H/d
+pixels with the intrinsics scaled to it. The noise model keeps the full-resolution f_x: stereo
+noise is set by the matcher, which works at full resolution, and the filter's combination of
+d x d neighbouring depths (median or mean) removes little of it, since that noise is correlated
+over neighbouring pixels.
 """
 
 from __future__ import annotations
@@ -37,7 +51,12 @@ class DepthNoise:
     max_range: float = 10.0  # m, farther returns 0
 
     def sigma(self, z: np.ndarray, fx: float) -> np.ndarray:
+        """Depth standard deviation at depth z (first order): z^2 s / (f_x b)."""
         return z * z * self.subpixel / (fx * self.baseline)
+
+    def inverse_depth_sigma(self, fx: float) -> float:
+        """Standard deviation of 1/z (1/m): the matcher's disparity error s over f_x b, the same everywhere."""
+        return self.subpixel / (fx * self.baseline)
 
 
 @dataclass(frozen=True)
@@ -75,10 +94,13 @@ class SimScene:
     backdrop_margin: float = 3.0  # m beyond the map's extent
     backdrop_height: float = 3.0  # m, with a ceiling on top
     _polys: Optional[List[np.ndarray]] = field(default=None, repr=False)
+    _sides: Optional[List[Optional[np.ndarray]]] = field(default=None, repr=False)
 
     def polygons(self) -> List[np.ndarray]:
         if self._polys is None:
             polys = [poly for p in self.plane_map.planes for poly in p.polygons]
+            # The map plane (n, d) of each one-sided polygon; None: drawn from both sides.
+            self._sides = [p.pi for p in self.plane_map.planes for _ in p.polygons]
             for box in self.clutter:
                 polys.extend(box.faces())
             lo, hi = self.plane_map.bounds()
@@ -93,8 +115,14 @@ class SimScene:
                     (a, b), (c, d) = ring[i], ring[(i + 1) % 4]
                     polys.append(np.array([[a, b, 0], [c, d, 0], [c, d, h], [a, b, h]], float))
                 polys.append(np.array([[x0, y0, h], [x1, y0, h], [x1, y1, h], [x0, y1, h]], float))
+            self._sides += [None] * (len(polys) - len(self._sides))
             self._polys = polys
         return self._polys
+
+    def one_sided_planes(self) -> List[Optional[np.ndarray]]:
+        """Per polygon of :meth:`polygons`: the map plane (n, d) whose front alone is drawn, or None."""
+        self.polygons()
+        return self._sides
 
 
 def render_depth_metres(scene: SimScene, T_ground_camera: np.ndarray, K: np.ndarray, width: int,
@@ -105,7 +133,10 @@ def render_depth_metres(scene: SimScene, T_ground_camera: np.ndarray, K: np.ndar
     zbuf = np.full((height, width), np.inf, dtype=np.float64)
     cols = (np.arange(width) - K[0, 2]) / K[0, 0]
     rows = (np.arange(height) - K[1, 2]) / K[1, 1]
-    for poly_G in scene.polygons():
+    cam_G = T_ground_camera[:3, 3]
+    for poly_G, pi_G in zip(scene.polygons(), scene.one_sided_planes()):
+        if pi_G is not None and pi_G[:3] @ cam_G + pi_G[3] <= 0:
+            continue  # the back of a one-sided map face
         poly_C = clip_polygon(transform_points(T_camera_ground, poly_G), frustum)
         if poly_C is None:
             continue
@@ -145,7 +176,10 @@ def add_depth_noise(z: np.ndarray, fx: float, noise: DepthNoise, rng: np.random.
     fly = edge & (rng.random(out.shape) < noise.flying_pixels)
     mix = rng.random(int(fly.sum()))
     out[fly] = out[fly] + mix * (far[fly] - out[fly])
-    out[valid] += rng.standard_normal(int(valid.sum())) * noise.sigma(out[valid], fx)
+    # The matcher errs in disparity (f_x b / z) by about s pixels, Gaussian: in depth that is
+    # sigma_z = z^2 s / (f_x b) to first order, skewed towards far at long range.
+    inv = 1.0 / out[valid] + rng.standard_normal(int(valid.sum())) * noise.inverse_depth_sigma(fx)
+    out[valid] = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-12), 0.0)
     drop = rng.random(out.shape) < noise.dropout
     out[drop | (out < noise.min_range) | (out > noise.max_range)] = 0.0
     return out
@@ -155,17 +189,37 @@ def to_depth_units(z: np.ndarray, depth_scale: float) -> np.ndarray:
     return np.clip(np.round(z / depth_scale), 0, 65535).astype(np.uint16)
 
 
+def decimated_intrinsics(K: np.ndarray, width: int, height: int, decimation: int) -> Tuple[np.ndarray, int, int]:
+    """K, width and height of a frame decimated by ``decimation`` (librealsense's decimation filter:
+    each output pixel covers a d x d block, so a pixel centre c maps to (c + 0.5) / d - 0.5)."""
+    d = int(decimation)
+    if d < 1:
+        raise ValueError(f"decimation must be >= 1, got {decimation}")
+    Kd = np.array(K, float)
+    if d > 1:
+        Kd[0, 0] /= d
+        Kd[1, 1] /= d
+        Kd[0, 2] = (Kd[0, 2] + 0.5) / d - 0.5
+        Kd[1, 2] = (Kd[1, 2] + 0.5) / d - 0.5
+    return Kd, width // d, height // d
+
+
 def render_depth_frame(robot: RobotConfig, scene: SimScene, camera: str, pose: Tuple[float, float, float],
                        rng: Optional[np.random.Generator] = None, noise: Optional[DepthNoise] = DepthNoise(),
                        depth_scale: float = 0.001, K: Optional[np.ndarray] = None, t_capture: float = 0.0,
-                       frame_number: int = 0) -> DepthFrame:
-    """A simulated frame of ``camera`` with the robot at ``pose`` (ground truth attached)."""
+                       frame_number: int = 0, decimation: int = 1) -> DepthFrame:
+    """A simulated frame of ``camera`` with the robot at ``pose`` (ground truth attached).
+
+    ``K`` is the full-resolution intrinsics (default: from the field of view). With
+    ``decimation`` d > 1 the frame is (W // d) x (H // d) with K scaled to it, as the D435i's
+    decimation filter gives; the depth noise keeps the full-resolution f_x (the stereo matcher's)."""
     cam = robot.camera(camera)
-    K = cam.intrinsics_from_fov() if K is None else np.asarray(K, float)
+    K_full = cam.intrinsics_from_fov() if K is None else np.asarray(K, float)
+    K, width, height = decimated_intrinsics(K_full, cam.width, cam.height, decimation)
     T_ground_camera = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
-    z = render_depth_metres(scene, T_ground_camera, K, cam.width, cam.height)
+    z = render_depth_metres(scene, T_ground_camera, K, width, height)
     if noise is not None:
-        z = add_depth_noise(z, K[0, 0], noise, rng if rng is not None else np.random.default_rng())
+        z = add_depth_noise(z, K_full[0, 0], noise, rng if rng is not None else np.random.default_rng())
     return DepthFrame(camera=camera, depth=to_depth_units(z, depth_scale), depth_scale=depth_scale, K=K,
                       t_capture=t_capture, frame_number=frame_number, timestamp_domain="simulated",
                       truth=tuple(float(v) for v in pose))

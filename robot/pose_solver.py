@@ -6,10 +6,16 @@ Two estimators:
   differences; position is the 2x2 weighted least squares of the plane lines
   d_R = n_Gx x + n_Gy y + d_G, weights proportional to inlier counts.
 * ``joint`` (default): Gauss-Newton on the pose over every inlier point, weighted by the stereo
-  noise model, with a Huber loss. The point-to-plane residual is linear in the homogeneous point,
-  so each plane's points enter only through their weighted second-moment matrix M = sum w q q^T
-  (q = [p_R, 1]); iterations then cost O(planes), not O(points), and the result is still the
-  exact weighted least-squares optimum over all points.
+  noise model, with a robust loss. Each plane fit (robot/plane_fit.py) is the maximum-likelihood
+  plane of its points with their information matrix over (two normal angles, offset); to second
+  order the points' cost is that quadratic form around the fitted plane, so the pose solve runs
+  on the planes (O(planes) per iteration, not O(points)) and is still the optimum over all
+  points. The points' robust loss (Huber on depth residuals) lives in the fit; here a second
+  Huber loss on each plane's Mahalanobis residual keeps one plane that disagrees with the
+  others (a wall built off the model, a wrong identification) from dragging the pose.
+
+The covariance is the inverse information, widened by the planes' disagreement with each other
+when it exceeds what their own covariances explain (reduced chi-square > 1).
 
 Unobservable directions (one wall, parallel walls) are detected from the information matrix,
 kept at the coarse value and given a large variance: never invented.
@@ -23,12 +29,12 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
-from robot.geometry import rot_z, wrap_angle
-from robot.plane_fit import FitParams, PlaneFit, residual_sigma
+from robot.geometry import wrap_angle
+from robot.plane_fit import PlaneFit
 
 HEADING_LENGTH = 1.0  # m: scales phi against x, y when deciding which directions are observable
 UNOBSERVED_VARIANCE = 1.0  # m^2 or rad^2 floor for a direction no plane constrains
-HUBER_K = 2.0  # residuals beyond this many sigma get linearly, not quadratically, penalised
+PLANE_HUBER_K = 3.0  # a plane's Mahalanobis residual beyond this many sigma is penalised linearly
 
 
 @dataclass
@@ -41,8 +47,6 @@ class ObservedPlane:
     d_ground: float
     fit: PlaneFit
     T_robot_camera: np.ndarray
-    points_camera: np.ndarray  # (N, 3) inlier points in C
-    fit_params: FitParams = field(default_factory=FitParams)
     n_robot: np.ndarray = field(init=False)
     d_robot: float = field(init=False)
     cov_d_psi: np.ndarray = field(init=False)  # 2x2 covariance of (d_R, psi_R)
@@ -95,14 +99,16 @@ def _direction_label(v: np.ndarray) -> Dict:
     return {"direction": [round(float(c), 6) for c in v], "label": label}
 
 
+_S = np.diag([1.0, 1.0, HEADING_LENGTH])
+_SI = np.linalg.inv(_S)
+
+
 def _split_observable(H: np.ndarray, unobservable_std: float):
     """Eigen-split the information matrix (in x, y, L*phi units) into observable/unobservable."""
-    S = np.diag([1.0, 1.0, HEADING_LENGTH])
-    Si = np.linalg.inv(S)
-    Hs = Si @ H @ Si
+    Hs = _SI @ H @ _SI
     lam, V = np.linalg.eigh(0.5 * (Hs + Hs.T))
     obs = lam > 1.0 / unobservable_std**2
-    return S, Si, lam, V, obs
+    return _S, _SI, lam, V, obs
 
 
 def _covariance(lam, V, obs, Si, coarse_cov: Optional[np.ndarray]) -> np.ndarray:
@@ -166,81 +172,95 @@ def solve_paper(planes: Sequence[ObservedPlane], coarse, coarse_cov=None,
     return PoseEstimate(float(t[0]), float(t[1]), phi, cov, "degenerate" if unobs else "ok", unobs)
 
 
-def _moments(points_robot: np.ndarray, w: np.ndarray) -> np.ndarray:
-    q = np.empty((len(points_robot), 4))
-    q[:, :3] = points_robot
-    q[:, 3] = 1.0
-    return (q * w[:, None]).T @ q
+class _PlaneStack:
+    """The planes' data as arrays, for Gauss-Newton vectorised over planes.
+
+    Each map plane moved into its camera at pose (x, y, phi) is pi_C = T_RC^T T_GR^T pi_G:
+    n_R = Rz(phi)^T n_G = cos(phi) a + sin(phi) b + e with a = (n_Gx, n_Gy, 0),
+    b = (n_Gy, -n_Gx, 0), e = (0, 0, n_Gz); d_R = n_G . (x, y, 0) + d_G; n_C = R_RC^T n_R and
+    d_C = n_R . t_RC + d_R. Its difference from the fit in the fit's tangent coordinates,
+    (e1 . n_C, e2 . n_C, d_C - d_fit) (e_i is orthogonal to the fitted normal), is therefore
+    cos(phi) Kc + sin(phi) Ks + K0 + (0, 0, n_Gxy . (x, y)) with per-plane constants."""
+
+    def __init__(self, planes: Sequence[ObservedPlane]):
+        P = len(planes)
+        R = np.array([p.T_robot_camera[:3, :3] for p in planes])
+        t = np.array([p.T_robot_camera[:3, 3] for p in planes])
+        nG = np.array([p.n_ground for p in planes], float)
+        BR = np.einsum("pkj,pij->pki", np.array([p.fit.basis for p in planes]), R)  # e_i . R^T v = (R e_i) . v
+        a = np.column_stack([nG[:, 0], nG[:, 1], np.zeros(P)])
+        b = np.column_stack([nG[:, 1], -nG[:, 0], np.zeros(P)])
+        e = np.column_stack([np.zeros(P), np.zeros(P), nG[:, 2]])
+        self.Kc, self.Ks, self.K0 = (np.empty((P, 3)) for _ in range(3))
+        for K, v in ((self.Kc, a), (self.Ks, b), (self.K0, e)):
+            K[:, :2] = np.einsum("pki,pi->pk", BR, v)
+            K[:, 2] = np.einsum("pi,pi->p", v, t)
+        self.K0[:, 2] += np.array([p.d_ground - p.fit.d_camera for p in planes])
+        self.nxy = nG[:, :2]
+        self.info = np.array([p.fit.info for p in planes])  # (P, 3, 3)
+
+    def residuals(self, x: np.ndarray):
+        """(P, 3) residuals at pose ``x`` and their (P, 3, 3) Jacobian over (x, y, phi)."""
+        c, s = math.cos(x[2]), math.sin(x[2])
+        r = c * self.Kc + s * self.Ks + self.K0
+        r[:, 2] += self.nxy @ x[:2]
+        J = np.zeros((len(r), 3, 3))
+        J[:, 2, :2] = self.nxy
+        J[:, :, 2] = c * self.Ks - s * self.Kc
+        return r, J
 
 
-def _gauss_newton(planes, moments, x0, unobservable_std, iterations=8):
+def _normal_equations(st: _PlaneStack, x: np.ndarray, W: np.ndarray):
+    r, J = st.residuals(x)
+    JtW = np.matmul(J.transpose(0, 2, 1), W)
+    return np.matmul(JtW, J).sum(axis=0), np.matmul(JtW, r[:, :, None]).sum(axis=0)[:, 0], r
+
+
+def _gauss_newton(st: _PlaneStack, x0, weights: np.ndarray, unobservable_std: float, iterations: int = 10):
+    """Minimise sum_j w_j r_j^T I_j r_j over the pose; steps only along observable directions.
+    Linear in position, so a few steps converge from any heading within tens of degrees."""
     x = np.array(x0, float)
+    W = st.info * weights[:, None, None]
+    Vo = None
     for _ in range(iterations):
-        H = np.zeros((3, 3))
-        g = np.zeros(3)
-        cost = 0.0
-        R2 = rot_z(x[2])[:2, :2]
-        J90 = np.array([[0.0, -1.0], [1.0, 0.0]])
-        for p, M in zip(planes, moments):
-            a = p.n_ground[:2]
-            c = R2.T @ a
-            bvec = R2.T @ J90.T @ a
-            u = np.array([c[0], c[1], p.n_ground[2], a @ x[:2] + p.d_ground])
-            G = np.zeros((3, 4))
-            G[0, 3], G[1, 3] = a
-            G[2, :2] = bvec
-            GM = G @ M
-            H += GM @ G.T
-            g += GM @ u
-            cost += float(u @ M @ u)
-        S, Si, lam, V, obs = _split_observable(H, unobservable_std)
-        gs = Si @ g
-        step_s = np.zeros(3)
-        for j in range(3):
-            if obs[j]:
-                step_s -= V[:, j] * (V[:, j] @ gs) / lam[j]
-        step = Si @ step_s
+        H, g, _ = _normal_equations(st, x, W)
+        if Vo is None:  # which directions are observable does not change between the steps
+            _, Si, lam, V, obs = _split_observable(H, unobservable_std)
+            Vo = Si @ V[:, obs]  # observable directions in (x, y, phi)
+        # Newton step restricted to the observable subspace.
+        step = -Vo @ np.linalg.solve(Vo.T @ H @ Vo, Vo.T @ g)
         x += step
         x[2] = float(wrap_angle(x[2]))
-        if np.all(np.abs(step) < [1e-7, 1e-7, 1e-8]):
+        if abs(step[0]) < 1e-8 and abs(step[1]) < 1e-8 and abs(step[2]) < 1e-9:
             break
-    return x, H, cost
+    H, _, r = _normal_equations(st, x, W)
+    m2 = np.einsum("pk,pkl,pl->p", r, st.info, r)  # each plane's squared Mahalanobis residual
+    return x, H, m2
 
 
 def solve_joint(planes: Sequence[ObservedPlane], coarse, coarse_cov=None,
                 unobservable_std: float = 0.05, start=None) -> PoseEstimate:
-    """Weighted, robust Gauss-Newton over all inlier points (see the module docstring)."""
+    """Robust Gauss-Newton over all planes' fits (see the module docstring)."""
     if not planes:
         return _no_planes(coarse, coarse_cov)
-    # Start from the paper estimate: closed form, already close, so GN converges in a few steps.
-    x0 = start if start is not None else (lambda e: (e.x, e.y, e.phi))(solve_paper(planes, coarse, coarse_cov, unobservable_std))
-    # q_R = T_RC q_C, so the robot-frame moments are T M_C T^T: no per-point work.
-    moments = [p.T_robot_camera @ p.fit.moments @ p.T_robot_camera.T for p in planes]
-    x, H, cost = _gauss_newton(planes, moments, x0, unobservable_std)
-    # One Huber reweighting against the planes the pose predicts (not the per-plane fits).
-    T_ground_robot = np.eye(4)
-    T_ground_robot[:3, :3] = rot_z(x[2])
-    T_ground_robot[:2, 3] = x[:2]
-    moments = []
-    n_total = 0
-    for p in planes:
-        T_ground_camera = T_ground_robot @ p.T_robot_camera
-        pi_C = np.array([*p.n_ground, p.d_ground]) @ T_ground_camera
-        P = p.points_camera
-        r = P @ pi_C[:3] + pi_C[3]
-        w = 1.0 / np.maximum(residual_sigma(P, p.fit.n_camera, p.fit_params), 1e-4) ** 2
-        w *= np.minimum(1.0, HUBER_K / np.maximum(np.abs(r) * np.sqrt(w), 1e-12))
-        moments.append(p.T_robot_camera @ _moments(P, w) @ p.T_robot_camera.T)
-        n_total += len(P)
-    x, H, cost = _gauss_newton(planes, moments, x, unobservable_std)
-    chi2_red = cost / max(n_total - 3, 1)
+    st = _PlaneStack(planes)
+    weights = np.ones(len(planes))
+    x, H, m2 = _gauss_newton(st, coarse if start is None else start, weights, unobservable_std)
+    # Huber on each plane's Mahalanobis residual (IRLS): a plane far from what the others agree
+    # on loses weight instead of moving the pose.
+    for _ in range(3):
+        new = np.minimum(1.0, PLANE_HUBER_K / np.sqrt(np.maximum(m2, 1e-12)))
+        if float(np.max(np.abs(new - weights))) < 1e-3:
+            break
+        weights = new
+        x, H, m2 = _gauss_newton(st, x, weights, unobservable_std)
     S, Si, lam, V, obs = _split_observable(H, unobservable_std)
     cov = _covariance(lam, V, obs, Si, coarse_cov)
-    obs_cov = np.zeros((3, 3))
-    for j in range(3):
-        if obs[j]:
-            obs_cov += np.outer(V[:, j], V[:, j]) / lam[j]
-    cov = cov + Si @ obs_cov @ Si * (max(chi2_red, 1.0) - 1.0)
+    dof = 3 * len(planes) - int(obs.sum())
+    chi2_red = float(np.sum(weights * m2)) / max(dof, 1)
+    if chi2_red > 1.0:
+        Vo = V[:, obs]
+        cov = cov + Si @ (Vo / lam[obs]) @ Vo.T @ Si * (chi2_red - 1.0)
     unobs = [_direction_label(S @ V[:, j]) for j in range(3) if not obs[j]]
     if unobs:
         # Hold unobservable directions at the coarse value: remove any drift GN put there.

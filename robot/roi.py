@@ -276,23 +276,33 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
 
 
 def shrink_rois(views: List[PlaneView], label: np.ndarray, grid: CameraGrid,
-                margin_for: Callable[[PlaneView], float]) -> None:
+                margin_for: Callable[[PlaneView], float], pad: int = 0) -> None:
     """Fill each view's pixel count and its ROI: its own pixels eroded by its margin (in image
-    pixels), so pixels that a pose error could hand to a neighbour are left out."""
+    pixels), so pixels that a pose error could hand to a neighbour are left out.
+
+    The grid's border counts as outside: what lies beyond it is unknown here, and a plane cut by
+    the border may end just beyond it, where a pose error would bring its edge into view. To
+    keep the pixels of a plane that runs on well past the border, rasterize on a grid padded by
+    ``pad`` pixels on every side (at least the largest margin, in grid pixels): the erosion then
+    sees what lies beyond the image, and pixel counts and ROIs cover the inner grid only, in its
+    coordinates (what :meth:`robot.localizer.Localizer.plane_rois` does)."""
     H, W = label.shape
     for k, view in enumerate(views):
         view.roi_rows = view.roi_cols = np.zeros(0, np.intp)
+        view.pixels = 0
         # A view owns pixels only inside its box (unknown: the whole grid). The crop reaches r
-        # beyond it, so only true image edges act as border for the erosion below.
+        # beyond it, so only the grid's edges act as border for the erosion below.
         c0, r0, c1, r1 = view.box if view.box is not None else (0, 0, W - 1, H - 1)
-        if c1 < c0 or r1 < r0:
-            view.pixels = 0
+        # The part of the box inside the inner grid: what can be reported.
+        i0, j0, i1, j1 = max(r0, pad), max(c0, pad), min(r1, H - 1 - pad), min(c1, W - 1 - pad)
+        if i1 < i0 or j1 < j0:
             continue
         margin = float(margin_for(view))
         r = int(math.ceil(margin / grid.stride))
         r0, c0 = max(r0 - r, 0), max(c0 - r, 0)
         own = (label[r0:r1 + r + 1, c0:c1 + r + 1] == k).view(np.uint8)
-        view.pixels = int(np.count_nonzero(own))
+        inner = (slice(i0 - r0, i1 + 1 - r0), slice(j0 - c0, j1 + 1 - c0))
+        view.pixels = int(np.count_nonzero(own[inner]))
         if view.pixels == 0:
             continue
         view.margin_px = margin
@@ -300,9 +310,8 @@ def shrink_rois(views: List[PlaneView], label: np.ndarray, grid: CameraGrid,
             kernel = _KERNELS.get(r)
             if kernel is None:
                 kernel = _KERNELS[r] = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
-            # Border pixels count as "inside": the image edge is not a plane edge.
-            own = cv2.erode(own, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=1)
+            own = cv2.erode(own, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
         # cv2.findNonZero lists (col, row) in row-major order, as np.nonzero, at half its cost.
-        found = cv2.findNonZero(own)
+        found = cv2.findNonZero(np.ascontiguousarray(own[inner]))
         if found is not None:
-            view.roi_rows, view.roi_cols = found[:, 0, 1] + r0, found[:, 0, 0] + c0
+            view.roi_rows, view.roi_cols = found[:, 0, 1] + (i0 - pad), found[:, 0, 0] + (j0 - pad)

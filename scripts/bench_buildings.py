@@ -33,7 +33,6 @@ from robot.geometry import pose_to_T_ground_robot  # noqa: E402
 from robot.localizer import DEFAULT_COARSE_STD, Localizer  # noqa: E402
 from robot.plane_index import PlaneIndex  # noqa: E402
 from robot.plane_map import PlaneMap, load_plane_map  # noqa: E402
-from robot.roi import CameraGrid, predict_plane_views, rasterize_views, shrink_rois  # noqa: E402
 
 ROBOT = load_robot_config(ROOT / "config/robot.yaml")
 PARAMS = ROBOT.localizer
@@ -48,39 +47,47 @@ TARGET_MS = 1.0  # issue 5: visibility + ROI of a 2,000-plane map, median per fr
 RENDER_RADIUS = 12.0  # m: the renderer gets the planes this close (its depth stops at 10 m)
 
 
-def margin_for_coarse(fx: float, cov_std=DEFAULT_COARSE_STD):
-    """The localizer's ROI margin for a coarse pose with the given std (Localizer._observe_frame)."""
-    std_pos = math.hypot(cov_std[0], cov_std[1])
-
-    def margin_for(view) -> float:
-        grow = 2.0 * (fx * cov_std[2] + fx * std_pos / max(view.z_near, 0.3))
-        return min(PARAMS.margin_px + grow, PARAMS.max_margin_px)
-
-    return margin_for
+COLD_COV = np.diag(np.square(DEFAULT_COARSE_STD))  # the localizer's default coarse covariance
 
 
-def visibility_and_roi(plane_map: PlaneMap, index: Optional[PlaneIndex], T_ground_camera, grid: CameraGrid,
-                       margin_for):
-    """What the localizer does per frame before fitting; ``index=None``: every plane, no index."""
-    if index is None:
-        candidates = range(len(plane_map))
-    else:
-        candidates = index.in_view(T_ground_camera, grid.frustum, PARAMS.max_range)
-    views = predict_plane_views(plane_map, candidates, T_ground_camera, grid, PARAMS.max_range)
-    label = rasterize_views(views, grid)
-    shrink_rois(views, label, grid, margin_for)
-    return candidates, views
+class _AllPlanes:
+    """Stands in for the spatial index: every plane is a candidate (what the index saves)."""
+
+    def __init__(self, n: int):
+        self.all = list(range(n))
+
+    def in_view(self, *_args) -> List[int]:
+        return self.all
+
+
+class _Counting:
+    """Passes ``in_view`` through and remembers how many candidates it returned."""
+
+    def __init__(self, index):
+        self.index, self.last = index, 0
+
+    def in_view(self, *args) -> List[int]:
+        out = self.index.in_view(*args)
+        self.last = len(out)
+        return out
+
+
+def visibility_and_roi(loc: Localizer, geo, T_ground_camera, cov=COLD_COV):
+    """What the localizer does per frame before fitting (Localizer.plane_rois): index query,
+    pre-cull, clipping, rasterization on the margin-padded grid, ROI erosion."""
+    return loc.plane_rois(geo, T_ground_camera, cov)
 
 
 class FrameTimer:
     """Visibility + ROI frames of one map at given poses, timed in rounds: scaling() runs a round of
     every map in turn and keeps each frame's best time, so a burst of load from other processes
-    spoils one round of one map, not a whole row."""
+    spoils one round of one map, not a whole row. ``index=None``: every plane, no index."""
 
     def __init__(self, plane_map: PlaneMap, index: Optional[PlaneIndex], poses, cam):
-        self.map, self.index = plane_map, index
-        self.grid = CameraGrid(cam.intrinsics_from_fov(), cam.width, cam.height, PARAMS.pixel_stride)
-        self.margin_for = margin_for_coarse(float(self.grid.K[0, 0]))
+        self.loc = Localizer(ROBOT, plane_map)
+        self.counter = _Counting(_AllPlanes(len(plane_map)) if index is None else index)
+        self.loc.index = self.counter
+        self.geo = self.loc.frame_geometry(cam, cam.intrinsics_from_fov(), cam.width, cam.height)
         self.Ts = [pose_to_T_ground_robot(*p) @ cam.T_robot_camera for p in poses]
         self.best = np.full(len(poses), np.inf)
         self.counts = []
@@ -88,10 +95,10 @@ class FrameTimer:
     def round(self) -> None:
         for i, T in enumerate(self.Ts):
             t0 = time.perf_counter()
-            cand, views = visibility_and_roi(self.map, self.index, T, self.grid, self.margin_for)
+            views = visibility_and_roi(self.loc, self.geo, T)
             self.best[i] = min(self.best[i], time.perf_counter() - t0)
             if len(self.counts) < len(self.Ts):
-                self.counts.append((len(cand), len(views), sum(1 for v in views if v.box[2] >= v.box[0]),
+                self.counts.append((self.counter.last, len(views), sum(1 for v in views if v.box[2] >= v.box[0]),
                                     sum(1 for v in views if v.pixels > 0)))
 
     @property
@@ -111,7 +118,8 @@ def scaling(quick: bool) -> List[str]:
              f"rooms per map; each frame timed as the best of {repeats} rounds over all maps (other processes share "
              "the cores). "
              "One frame = spatial-index query + frustum/back-face pre-cull + clipping + nearest-first "
-             "rasterization + ROI erosion (everything before the plane fits).", "",
+             "rasterization on the grid padded by the largest margin + ROI erosion (`Localizer.plane_rois`, "
+             "everything before the plane fits).", "",
              "| planes | polygons | index build (s) | candidates in view | views | rasterized | visible | "
              "median ms | p95 ms | without the index: median ms |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -223,17 +231,11 @@ def two_walls(plane_map: PlaneMap, res, truth, near: float = 3.0) -> Tuple[bool,
 
 def render_scene(plane_map: PlaneMap, index: PlaneIndex, camera_G: np.ndarray, clutter) -> SimScene:
     """The simulated world one camera at ``camera_G`` sees: the map's wall faces within RENDER_RADIUS
-    that face it (the renderer tests every polygon it is given and its depth ends at 10 m), floor,
-    backdrop and clutter.
-
-    A map face is one side of a solid wall: the simulator draws polygons from both sides, which
-    would let the camera see the back of a wall's far face through a door cut in its near face
-    (the door's reveals, which would hide it, are not in the map): a parallel "wall" one wall
-    thickness behind, which no real camera sees. So faces seen from behind are left out."""
-    near = index.candidates(camera_G[:2], RENDER_RADIUS)
-    facing = [plane_map.planes[i] for i in near if plane_map.planes[i].normal @ camera_G + plane_map.planes[i].d > 0]
+    (the renderer tests every polygon it is given and its depth ends at 10 m), floor, backdrop and
+    clutter. Map faces are one-sided in the renderer: a face seen from behind is not drawn."""
+    near = [plane_map.planes[i] for i in index.candidates(camera_G[:2], RENDER_RADIUS)]
     boxes = [b for b in clutter if math.hypot(b.x - camera_G[0], b.y - camera_G[1]) < RENDER_RADIUS]
-    return SimScene(PlaneMap(facing or plane_map.planes[:1], source=plane_map.source), boxes)
+    return SimScene(PlaneMap(near or plane_map.planes[:1], source=plane_map.source), boxes)
 
 
 def localize_in(plane_map: PlaneMap, n_poses: int, seed: int) -> Dict:
@@ -243,7 +245,7 @@ def localize_in(plane_map: PlaneMap, n_poses: int, seed: int) -> Dict:
     poses = free_space_poses(plane_map, n_poses, rng, clearance=0.4, z=0.15)
     lo, hi = plane_map.bounds()
     area = float(np.prod(hi[:2] - lo[:2]))
-    grids = {c.name: CameraGrid(c.intrinsics_from_fov(), c.width, c.height, PARAMS.pixel_stride) for c in ROBOT.cameras}
+    geos = {c.name: loc.frame_geometry(c, c.intrinsics_from_fov(), c.width, c.height) for c in ROBOT.cameras}
     rows = []
     vis_ms = []
     for k, truth in enumerate(poses):
@@ -259,16 +261,16 @@ def localize_in(plane_map: PlaneMap, n_poses: int, seed: int) -> Dict:
             frames.append(render_depth_frame(ROBOT, scene, c.name, truth, rng=rng, frame_number=k))
         coarse = coarse_from(truth, rng)
         for cam in ROBOT.cameras:
-            grid = grids[cam.name]
             T = pose_to_T_ground_robot(*coarse) @ cam.T_robot_camera
-            margin_for = margin_for_coarse(float(grid.K[0, 0]))
             best = math.inf
             for _ in range(3):
                 t0 = time.perf_counter()
-                visibility_and_roi(plane_map, index, T, grid, margin_for)
+                visibility_and_roi(loc, geos[cam.name], T)
                 best = min(best, time.perf_counter() - t0)
             vis_ms.append(best * 1e3)
         res = loc.localize(frames, coarse)
+        e = np.array([res.x - truth[0], res.y - truth[1], math.remainder(res.phi - truth[2], 2 * math.pi)])
+        nees = float(e @ np.linalg.solve(res.cov, e)) if res.status == "ok" else None
         used, wrong, off = identification(plane_map, res, truth)
         two, two_near = two_walls(plane_map, res, truth)
         bound = None
@@ -281,7 +283,7 @@ def localize_in(plane_map: PlaneMap, n_poses: int, seed: int) -> Dict:
         err_deg = abs(math.degrees(math.remainder(res.phi - truth[2], 2 * math.pi)))
         rows.append({"truth": truth, "status": res.status, "err_mm": err_mm, "err_deg": err_deg, "off": off,
                      "wrong": wrong, "two": two, "two_near": two_near, "unobservable": res.unobservable, "used": used, "ms": res.ms,
-                     "nerr": None if bound is None else normalized_error(res, truth, bound)})
+                     "nerr": None if bound is None else normalized_error(res, truth, bound), "nees": nees})
     return {"rows": rows, "vis_ms": np.array(vis_ms), "poses": len(poses)}
 
 
@@ -290,6 +292,13 @@ def _stat(values) -> str:
     if len(v) == 0:
         return "-"
     return f"{np.median(v):.2f} / {np.percentile(v, 95):.2f}"
+
+
+def _nees(values) -> str:
+    v = np.asarray([x for x in values if x is not None], float)
+    if len(v) == 0:
+        return "-"
+    return f"{np.mean(v):.2f} / {np.median(v):.2f} / {np.percentile(v, 95):.2f}"
 
 
 ARENA_TARGET = (3.0, 0.2)  # mm, deg: the arena's static-accuracy target (scripts/bench_localizer.py)
@@ -314,9 +323,11 @@ def buildings(quick: bool) -> List[str]:
     pairs = ["", "Poses where two used walls are at least 20 deg apart, all of them and those where both walls "
              "are within 3 m. 'err / bound': position error in units of the pose's Cramer-Rao bound at the "
              "localizer's pixel stride (`robot/crlb.py`, every pixel of the visible walls, no clutter; an efficient "
-             "estimator gives median 1.18, p95 2.45).", "",
+             "estimator gives median 1.18, p95 2.45). 'NEES': the pose error in units of the covariance the localizer "
+             "reported, e^T C^-1 e over (x, y, phi): an honest covariance gives mean 3, median 2.37, p95 7.81; "
+             "larger means the localizer claims more accuracy than it has.", "",
              "| map | walls | poses | pos err mm (median / p95) | heading err deg (median / p95) | err / bound "
-             "(median / p95) |", "|---|---|---|---|---|---|"]
+             "(median / p95) | NEES mean / median / p95 |", "|---|---|---|---|---|---|---|"]
     notes = []
     summary = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -344,7 +355,8 @@ def buildings(quick: bool) -> List[str]:
                 sel = [r for r in ok if r[key]]
                 summary[(label, key)] = sel
                 pairs.append(f"| {label} | {what} | {len(sel)} | {_stat([r['err_mm'] for r in sel])} | "
-                             f"{_stat([r['err_deg'] for r in sel])} | {_stat([r['nerr'] for r in sel])} |")
+                             f"{_stat([r['err_deg'] for r in sel])} | {_stat([r['nerr'] for r in sel])} | "
+                             f"{_nees([r['nees'] for r in sel])} |")
             degenerate = [r for r in rows if r["status"] == "degenerate"]
             if degenerate:
                 r = degenerate[0]
@@ -369,19 +381,21 @@ def buildings(quick: bool) -> List[str]:
         nn = [r["nerr"] for r in sel if r["nerr"] is not None]
         b_n = [r["nerr"] for r in base if r["nerr"] is not None]
         n_ratio = np.median(nn) / np.median(b_n) if nn and b_n else float("nan")
+        nees = np.mean([r["nees"] for r in sel])
         lines.append(f"- {label}, {'two walls' if key == 'two' else 'two walls within 3 m'}: the arena's accuracy "
                      f"target (median <= {ARENA_TARGET[0]:g} mm and <= {ARENA_TARGET[1]:g} deg) "
                      f"**{'met' if target else 'NOT met'}**; median position error {ratio:.0f}x the arena's in mm, "
-                     f"{n_ratio:.1f}x in units of the Cramer-Rao bound.")
+                     f"{n_ratio:.1f}x in units of the Cramer-Rao bound; mean NEES {nees:.1f} (3 when the reported "
+                     "covariance is honest).")
     lines += ["- Why millimetres cannot match the arena's: its walls are 0.3 to 1.5 m away, a building's 1 to 6 m, and "
               "depth noise grows with distance squared; the bound-normalized ratio takes that out, but the bound "
               "counts every pixel of every visible wall while the localizer uses ROIs shrunk by the cold start's "
               "margins (up to 40 px), which cost a small far wall most of its pixels."]
     lines += notes
-    lines.append("- Each camera's scene holds the map's faces within 12 m that face it (the renderer tests every "
-                 "polygon it is given, and its depth ends at 10 m). Faces seen from behind are left out: the renderer "
-                 "draws polygons from both sides, and would show the back of a wall's far face through a door cut in "
-                 "its near face, one wall thickness behind it, where a real camera sees the door's reveal.")
+    lines.append("- Each camera's scene holds the map's faces within 12 m (the renderer tests every polygon it is "
+                 "given, and its depth ends at 10 m). The renderer draws map faces from their front only: the back of "
+                 "a wall's far face, seen through a door cut in its near face, is where a real camera sees the door's "
+                 "reveal, which the map leaves out.")
     return lines
 
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.depth_render import SimScene, render_depth_metres
+from drivers.depth_render import Box, SimScene, render_depth_metres
 from drivers.sim_building import free_space_poses, room_grid_map
 from robot.config import load_robot_config
 from robot.geometry import pose_to_T_ground_robot, transform_plane, transform_points
@@ -233,3 +233,41 @@ def test_a_long_wall_both_nearer_and_farther_than_another_keeps_its_near_pixels(
         rr, cc = v.roi_rows, v.roi_cols
         ray = np.stack([(cc * grid.stride - K[0, 2]) / K[0, 0], (rr * grid.stride - K[1, 2]) / K[1, 1], np.ones(len(rr))])
         assert np.allclose(depth[rr * grid.stride, cc * grid.stride], -n[3] / (n[:3] @ ray), rtol=1e-6), pid
+
+
+def test_the_renderer_never_draws_the_back_of_a_map_face():
+    # A wall 0.2 m thick with a door: its two faces are two planes, each seen from its own room.
+    # Looking obliquely through the door, rays leave the near face's opening and meet the far
+    # face's plane beside its opening, from behind: a real camera sees the door's reveal there
+    # (not in the map), never a surface 0.2 m behind the near face.
+    near = wall("near", 2.0, -4.0, 4.0, door=(-0.3, 0.6, 2.0))
+    other = wall("other_side", 2.2, -4.0, 4.0, door=(-0.3, 0.6, 2.0))
+    other = make_plane("other_side", [poly[::-1] for poly in other.polygons])  # faces +x, into the next room
+    far = wall("far", 5.0, -4.0, 4.0)
+    plane_map = PlaneMap([near, other, far])
+    assert other.normal[0] > 0.99
+    cam = ROBOT.camera("front")
+    K = cam.intrinsics_from_fov()
+    T = pose_to_T_ground_robot(0.4, 0.1, 0.1) @ cam.T_robot_camera
+    depth = render_depth_metres(SimScene(plane_map, floor=False, backdrop=False), T, K, cam.width, cam.height)
+    rr, cc = np.nonzero(depth > 0)
+    ray = np.stack([(cc - K[0, 2]) / K[0, 0], (rr - K[1, 2]) / K[1, 1], np.ones(len(rr))])
+    z = {p.id: -n[3] / (n[:3] @ ray) for p in plane_map.planes for n in [transform_plane(T, p.pi)]}
+    on = {pid: np.isclose(depth[rr, cc], zp, rtol=1e-6) for pid, zp in z.items()}
+    assert on["near"].sum() > 1000 and on["far"].sum() > 1000  # the wall, and the next room through the door
+    assert not on["other_side"].any()
+    # Every pixel shows the near wall or, through the door, the far one: beside the opening,
+    # where a double-sided renderer shows the other face from behind, the far wall too.
+    assert (on["far"] | on["near"]).all()
+
+
+def test_a_one_sided_face_seen_from_behind_is_not_drawn_but_clutter_is_from_both_sides():
+    cam = ROBOT.camera("front")
+    K = cam.intrinsics_from_fov()
+    T = pose_to_T_ground_robot(0.0, 0.0, 0.0) @ cam.T_robot_camera
+    facing_away = make_plane("away", [[[2.0, -1.0, 0], [2.0, 1.0, 0], [2.0, 1.0, 1.0], [2.0, -1.0, 1.0]]])
+    assert facing_away.normal[0] > 0.99  # observable from +x only
+    scene = SimScene(PlaneMap([facing_away]), floor=False, backdrop=False)
+    assert not (render_depth_metres(scene, T, K, cam.width, cam.height) > 0).any()
+    boxed = SimScene(PlaneMap([facing_away]), clutter=[Box(1.0, 0.0, 0.2, 0.2, 0.3)], floor=False, backdrop=False)
+    assert (render_depth_metres(boxed, T, K, cam.width, cam.height) > 0).sum() > 100
