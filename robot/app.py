@@ -171,6 +171,8 @@ class RobotApp:
             elif self.teleop is not None:
                 self.core.teleoperate()
             if self.live_view is not None:
+                if self.localizer is not None:
+                    self.localizer.keep_roi_labels = True
                 try:
                     await self.live_view.start(self.plane_map)
                 except DriverError as e:  # an engineer's view must never keep the robot from running
@@ -357,6 +359,9 @@ class RobotApp:
                     "rejected": [list(r) for r in report.rejected]})
                 if self.live_view is not None:
                     self.live_view.publish_planes(frame.t_capture, name, [p.to_json() for p in result.planes])
+                    labels = self.localizer.last_roi_labels.get(name)
+                    if labels is not None:
+                        self.live_view.publish_roi(frame.t_capture, name, labels)
 
     async def _control_task(self) -> None:
         loop = self._loop

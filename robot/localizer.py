@@ -118,6 +118,10 @@ class Localizer:
         self.map = plane_map
         self.params = params or robot.localizer
         self.index = PlaneIndex(plane_map)
+        # Opt-in for engineers' live views: the last frame's shrunk ROIs per camera as a label
+        # image on the sampling grid (map plane index per pixel, -1 for none).
+        self.keep_roi_labels = False
+        self.last_roi_labels: Dict[str, np.ndarray] = {}
         self._geometry: Dict[Tuple, _FrameGeometry] = {}
 
     def frame_geometry(self, cam: CameraConfig, K: np.ndarray, width: int, height: int) -> _FrameGeometry:
@@ -191,6 +195,11 @@ class Localizer:
         T_ground_camera = pose_to_T_ground_robot(*coarse) @ cam.T_robot_camera
         candidates = self.index.candidates(T_ground_camera[:3, 3], p.max_range)
         views = self.plane_rois(geo, T_ground_camera, cov)
+        if self.keep_roi_labels:
+            labels = np.full(geo.grid.shape, -1, np.int32)
+            for view in views:
+                labels[view.roi_rows, view.roi_cols] = view.plane_index
+            self.last_roi_labels[cam.name] = labels
         full_px = (stride / geo.scale) ** 2  # configured-resolution pixels per grid pixel
         up_camera = cam.T_robot_camera[2, :3]  # the robot's z axis in the camera frame: R_RC^T e_z
         observed = []

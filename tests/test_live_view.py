@@ -357,3 +357,47 @@ def test_the_app_gets_the_null_view_when_off_and_one_clear_line_when_the_extra_i
         lv.make_live_view(8765)
     msg = str(e.value)
     assert "\n" not in msg and "--live" in msg and "pip install 'planeloc-robot[live]'" in msg
+
+
+@needs_server
+def test_the_running_app_publishes_pose_and_roi_images_of_its_frames():
+    from robot.app import AppOptions
+    from robot.config import load_robot_config
+    from robot.sim_realtime import RealtimeSimSettings, sim_rig
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    robot = load_robot_config(ROOT / "config" / "robot.yaml")
+    view = lv.make_live_view(port)
+    got = {}
+    opts = AppOptions(install_signal_handlers=False, status_period=0.2, stop_when_done=False)
+    with sim_rig(robot, ARENA, (0.5, 0.5, 0.3), RealtimeSimSettings(fps=10), opts, initial_pose=(0.5, 0.5, 0.3),
+                 live_view=view) as rig:
+        async def client():
+            await asyncio.sleep(1.0)
+            c = await Client.connect(port)
+            for _ in range(50):
+                if "/roi/front" in c.channels and "/pose" in c.channels:
+                    break
+                try:
+                    await c.next_message(0.1)
+                except asyncio.TimeoutError:
+                    pass
+            await c.subscribe("/pose", "/roi/front")
+            while len(got) < 2:
+                topic, _, msg = await c.next_message(10.0)
+                got[topic] = msg
+            await c.close()
+            rig.app.request_stop("test done")
+
+        async def main():
+            task = asyncio.get_running_loop().create_task(client())
+            rc = await rig.app.run()
+            await asyncio.wait_for(task, 5.0)
+            return rc
+
+        assert asyncio.run(asyncio.wait_for(main(), 40.0)) == 0
+    assert abs(got["/pose"]["x"] - 0.5) < 0.01
+    img = decode_png(got["/roi/front"]["data"])
+    assert img.shape[0] > 10 and (img.reshape(-1, 3).max(axis=1) > 0).mean() > 0.2  # walls are coloured
