@@ -12,6 +12,7 @@ need full-resolution frames at 30 Hz without paying the renderer's cost while th
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Callable, List, Optional, Tuple
@@ -19,7 +20,7 @@ from typing import Callable, List, Optional, Tuple
 from drivers.camera_base import CameraDriver, CameraState, FrameCallback, ImuCallback
 from drivers.depth_render import DepthNoise, SimScene, render_depth_frame
 from robot.config import RobotConfig
-from robot.frames import DepthFrame
+from robot.frames import DepthFrame, ImuSample
 
 PoseSource = Callable[[], Tuple[float, float, float]]
 
@@ -27,7 +28,8 @@ PoseSource = Callable[[], Tuple[float, float, float]]
 class SimCamera(CameraDriver):
     def __init__(self, robot: RobotConfig, camera: str, scene: SimScene, pose_source: PoseSource, *,
                  fps: Optional[float] = None, decimation: int = 1, noise: Optional[DepthNoise] = DepthNoise(),
-                 seed: int = 0, timeout: float = 0.5, cache: int = 0):
+                 seed: int = 0, timeout: float = 0.5, cache: int = 0, imu_rate: float = 0.0,
+                 gyro_noise: float = 0.0035):
         super().__init__(camera)
         import numpy as np
 
@@ -47,6 +49,11 @@ class SimCamera(CameraDriver):
         self._stall_until = 0.0
         self._gone = False
         self._frame_number = 0
+        self.imu_rate = float(imu_rate)  # Hz of simulated gyro samples (0: no IMU, like imu_enabled: false)
+        self.gyro_noise = float(gyro_noise)  # rad/s white noise per sample (BMI055 at 200 Hz)
+        self._imu_thread: Optional[threading.Thread] = None
+        # librealsense gives IMU samples in the depth optical axes; the simulated IMU sits at the optical origin
+        self.T_robot_imu = robot.camera(camera).T_robot_camera
 
     # -- faults ---------------------------------------------------------------------------------
 
@@ -70,12 +77,17 @@ class SimCamera(CameraDriver):
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, args=(on_frame,), name=f"camera-{self.name}", daemon=True)
         self._thread.start()
+        if self.imu_rate > 0 and on_imu is not None:
+            self._imu_thread = threading.Thread(target=self._run_imu, args=(on_imu,), name=f"camera-{self.name}-imu",
+                                                daemon=True)
+            self._imu_thread.start()
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-            self._thread = None
+        for th in (self._thread, self._imu_thread):
+            if th is not None:
+                th.join(timeout=2.0)
+        self._thread = self._imu_thread = None
         self._set_state(CameraState.STOPPED)
 
     # -- internals --------------------------------------------------------------------------------
@@ -88,6 +100,26 @@ class SimCamera(CameraDriver):
                                    noise=self.noise, t_capture=t, frame_number=self._frame_number, **kw)
         self.render_seconds += time.thread_time() - c0
         return frame
+
+    def _run_imu(self, on_imu: ImuCallback) -> None:
+        """Gyro samples from the true heading's rate, in the IMU (depth optical) axes, with noise."""
+        import numpy as np
+
+        rng = np.random.default_rng(self._frame_number + 7)
+        R_imu_robot = self.T_robot_imu[:3, :3].T
+        period = 1.0 / self.imu_rate
+        t_prev, phi_prev = time.monotonic(), self.pose_source()[2]
+        while not self._stop.wait(period):
+            if self._gone or time.monotonic() < self._stall_until:
+                continue
+            t, phi = time.monotonic(), self.pose_source()[2]
+            wz = math.remainder(phi - phi_prev, 2.0 * math.pi) / max(t - t_prev, 1e-4)
+            t_prev, phi_prev = t, phi
+            w = R_imu_robot @ np.array([0.0, 0.0, wz]) + rng.normal(0.0, self.gyro_noise, 3)
+            try:
+                on_imu(ImuSample(t=t, gyro=(float(w[0]), float(w[1]), float(w[2]))))
+            except Exception:
+                self.stats["errors"] += 1
 
     def _run(self, on_frame: FrameCallback) -> None:
         period = 1.0 / self.fps

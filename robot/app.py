@@ -294,6 +294,7 @@ class RobotApp:
             log.debug("camera %s: gyro sample refused: %s", camera.name, e)
             return
         self.core.on_gyro(sample.t, wz, GYRO_VARIANCE)
+        self._record("odometry", sample.t, {"t": sample.t, "gyro_wz": wz, "variance": GYRO_VARIANCE, "camera": camera.name})
 
     def _camera_state_threadsafe(self, name: str, state: CameraState) -> None:
         try:

@@ -77,6 +77,7 @@ class LocalizerConfig:
     inlier_threshold: float = 0.012  # m, point-to-plane, at 1 m; grows with the depth noise model
     min_inliers: int = 300
     min_roi_pixels: int = 400
+    min_inlier_fraction: float = 0.25  # a fit must explain this share of its ROI's points (rejects corner/strip fits)
     angle_gate_deg: float = 8.0  # base normal gate; 3 sigma of the coarse heading is added
     offset_gate: float = 0.05  # m, base offset gate; 3 sigma of the coarse position is added
     margin_px: float = 4.0  # base ROI shrink; grows with the coarse pose's uncertainty

@@ -154,6 +154,7 @@ class Localizer:
             # Stereo noise is the full-resolution matcher's, whatever the frame was decimated to.
             noise_fx_b=float(geo.grid.K[0, 0]) / geo.scale * 0.050,
             depth_unit=depth_unit,
+            min_inlier_fraction=p.min_inlier_fraction,
         )
 
     def plane_rois(self, geo: _FrameGeometry, T_ground_camera: np.ndarray, cov: np.ndarray) -> List[PlaneView]:

@@ -1,7 +1,7 @@
 """Replay a recorded run: redo localization and fusion from the recorded inputs and compare.
 
 The app records every input of the fusion with a sequence number in the order the core consumed
-it: the initial pose, each odometry sample, and for each localization the frame, the coarse pose
+it: the initial pose, each odometry and gyro sample, and for each localization the frame, the coarse pose
 and covariance it started from and the method. Replay feeds a fresh ``ControllerCore`` the same
 calls in the same order; the localizer is deterministic for a given frame and coarse pose (its
 RNG is seeded by the frame number), so the fused poses must agree with the recorded ones to
@@ -97,6 +97,8 @@ def replay(path, robot: Optional[RobotConfig] = None, plane_map: Optional[PlaneM
     for _, topic, msg in events:
         if topic == ms.TOPIC_STATUS:
             core.set_pose(msg["t"], msg["x"], msg["y"], msg["phi"], np.array(msg["cov"], float).reshape(3, 3))
+        elif topic == ms.TOPIC_ODOMETRY and "gyro_wz" in msg:
+            core.on_gyro(msg["t"], msg["gyro_wz"], msg["variance"])
         elif topic == ms.TOPIC_ODOMETRY:
             odo = WheelOdometry(t=msg["t"], angles=tuple(msg["angles"]), speeds=tuple(msg["wheel_speeds"]), dt=msg["dt"],
                                 t_board=msg.get("t_board", msg["t"]))

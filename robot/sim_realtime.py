@@ -53,7 +53,8 @@ def sim_rig(robot: RobotConfig, plane_map: PlaneMap, start, settings: RealtimeSi
     clutter = random_clutter(plane_map, settings.clutter, rng, keep_clear=[tuple(start[:2])]) if settings.clutter else ()
     scene = SimScene(plane_map, clutter=clutter)
     cameras = [SimCamera(robot, c.name, scene, lambda: emulator.pose, fps=settings.fps, decimation=settings.decimation,
-                         seed=settings.seed * 10 + i, cache=settings.frame_cache)
+                         seed=settings.seed * 10 + i, cache=settings.frame_cache,
+                         imu_rate=float(c.realsense.gyro_fps) if c.realsense.imu_enabled else 0.0)
                for i, c in enumerate(robot.cameras)]
     chassis = SerialChassis(robot.chassis, port=emulator.port)
     app = RobotApp(robot, plane_map, cameras, chassis, options, **app_kwargs)

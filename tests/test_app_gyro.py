@@ -26,7 +26,13 @@ class _Chassis:
 
 
 def test_gyro_samples_become_yaw_rate_about_the_robot_z_axis():
-    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], _Chassis())
+    written = []
+
+    class _Recorder:
+        def write(self, topic, t, message):
+            written.append((topic, dict(message)))
+
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], _Chassis(), recorder=_Recorder())
     seen = []
     app.core.on_gyro = lambda t, wz, var: seen.append((t, wz, var))
     # IMU axes as librealsense gives them (the depth optical frame: x right, y down, z forward),
@@ -37,3 +43,5 @@ def test_gyro_samples_become_yaw_rate_about_the_robot_z_axis():
     app._imu(_Cam(T), ImuSample(t=1.1, gyro=(float("nan"), 0.0, 0.0)))  # refused, never fused
     assert len(seen) == 1 and seen[0][0] == 1.0 and math.isclose(seen[0][1], 0.5, abs_tol=1e-9)
     assert app.stats.imu_rejected == 1
+    # recorded for replay, in the order fused
+    assert [(topic, m["gyro_wz"]) for topic, m in written] == [("/odometry", seen[0][1])]

@@ -6,6 +6,7 @@ import asyncio
 import json
 import subprocess
 import sys
+from dataclasses import replace
 
 from robot.app import AppOptions
 from robot.config import load_robot_config
@@ -22,10 +23,10 @@ PLAN = parse_path({"start": {"x": 0.4, "y": 0.6, "heading": 0.0},
                    "waypoints": [{"x": 0.7, "y": 0.6, "heading": 0.0, "tolerance": 0.005}]})
 
 
-def _record_run(path):
+def _record_run(path, robot=ROBOT):
     rec = BackgroundRecorder(Recorder(str(path)))
     opts = AppOptions(install_signal_handlers=False, status_period=0.25)
-    with sim_rig(ROBOT, ARENA, (0.4, 0.6, 0.0), RealtimeSimSettings(fps=8, decimation=4), opts, plan=PLAN,
+    with sim_rig(robot, ARENA, (0.4, 0.6, 0.0), RealtimeSimSettings(fps=8, decimation=4), opts, plan=PLAN,
                  recorder=rec) as rig:
         async def main():
             asyncio.get_running_loop().call_later(3.5, rig.app.request_stop, "test done")
@@ -54,6 +55,17 @@ def test_recorded_sim_run_replays_to_the_same_poses(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 1, p.stderr
     assert json.loads(p.stdout)["max_position_diff_m"] > 1e-4
+
+
+def test_a_run_with_the_gyro_fused_replays_identically_too(tmp_path):
+    left = ROBOT.camera("left")
+    cams = tuple(replace(c, realsense=replace(c.realsense, imu_enabled=True)) if c is left else c for c in ROBOT.cameras)
+    path = tmp_path / "gyro.mcap"
+    _record_run(path, replace(ROBOT, cameras=cams))
+    gyro = [m for m in read_recording(path, ["/odometry"]) if "gyro_wz" in m.message]
+    assert len(gyro) > 100  # ~200 Hz for 3 s
+    report = replay(path)
+    assert report.ok(), report.to_json()
 
 
 def test_replay_of_a_missing_or_foreign_file_is_one_clear_error(tmp_path):
