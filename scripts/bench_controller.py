@@ -132,13 +132,14 @@ def measure_experiment(quick: bool) -> str:
     runs = 3 if quick else 15
     t0 = time.monotonic()
     p = subprocess.run([sys.executable, "-m", "robot.cli", "sim", "--path", "config/paths/paper_4_3.yaml", "--runs",
-                        str(runs), "--out-dir", "sim_out"], cwd=REPO, capture_output=True, text=True)
+                        str(runs), "--out-dir", "docs/bench"], cwd=REPO, capture_output=True, text=True)
     wall = time.monotonic() - t0
     if p.returncode != 0:
         return f"`robotctl sim` failed (exit {p.returncode}):\n\n```\n{p.stdout}\n{p.stderr}\n```\n"
     return (f"`robotctl sim --path config/paths/paper_4_3.yaml --runs {runs}` (README's run command) took "
             f"**{wall:.0f} s** wall time on {os.cpu_count()} cores (target: under 120 s for 15 runs).\n\n"
-            f"```\n{p.stdout.strip()}\n```\n\n![error per target](sim_out/errors_per_target.png)\n")
+            f"```\n{p.stdout.strip()}\n```\n\n![error per target](docs/bench/errors_per_target.png)\n"
+            "![trajectories](docs/bench/trajectories.png)\n")
 
 
 def run(quick: bool = False) -> str:
