@@ -21,7 +21,6 @@ class LoopbackChassis:
     def __init__(self, board: BoardModel, ticks_per_rev: int, max_wheel_speed: float):
         self.board = board
         self.decoder = Decoder()
-        self.ticks_per_rev = int(ticks_per_rev)
         self.odometry = EncoderOdometry(ticks_per_rev, max_wheel_speed)
         self.status: Optional[Status] = None
         self.ready = False
@@ -37,9 +36,9 @@ class LoopbackChassis:
         self.board.handle_bytes(encode(Hello(minor=0, nonce=nonce, seq=self._next_seq())))
         for m in self.decoder.feed(self.board.take_outbox()):
             if isinstance(m, HelloReply) and m.nonce == nonce:
-                if m.ticks_per_rev != self.ticks_per_rev:
+                if m.ticks_per_rev != self.odometry.ticks_per_rev:
                     raise DriverError(f"board reports {m.ticks_per_rev} ticks per revolution, the config says "
-                                      f"{self.ticks_per_rev}: refusing to drive")
+                                      f"{self.odometry.ticks_per_rev}: refusing to drive")
                 self.ready = True
                 self.odometry.reset_baseline()
                 return m

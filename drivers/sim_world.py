@@ -35,6 +35,17 @@ class WorldSettings:
     board_substep: float = 0.005  # s per physics step (the firmware runs 1 ms; 5 ms is exact enough here and 5x faster)
 
 
+def sample_world(plane_map: PlaneMap, start: Sequence[float], seed: int, radius_error_std: float,
+                 clutter: int) -> Tuple[Tuple[float, ...], SimScene]:
+    """The seeded parts of a world: each wheel's radius error and the scene (with random clutter
+    kept clear of the start). Shared by the simulated-clock world and the real-time rig, so a
+    seed means the same robot and room in both."""
+    rng = np.random.default_rng(seed)
+    radius_error = tuple(float(v) for v in rng.normal(0.0, radius_error_std, 4))
+    boxes = random_clutter(plane_map, clutter, rng, keep_clear=[tuple(start[:2])]) if clutter else ()
+    return radius_error, SimScene(plane_map, clutter=boxes)
+
+
 class SimWorld:
     """The board and the scene, advanced by the caller's clock (``step``)."""
 
@@ -42,14 +53,12 @@ class SimWorld:
                  settings: WorldSettings = WorldSettings(), board: Optional[BoardModel] = None):
         self.robot = robot
         self.settings = settings
-        rng = np.random.default_rng(settings.seed)
-        radius_error = tuple(float(v) for v in rng.normal(0.0, settings.radius_error_std, 4))
+        radius_error, self.scene = sample_world(plane_map, start, settings.seed, settings.radius_error_std,
+                                                settings.clutter)
         self.board = board or BoardModel(robot.chassis, radius_error=radius_error, slip_noise=settings.slip_noise,
                                          seed=settings.seed, motor_tau=settings.motor_tau,
                                          substep_us=int(round(settings.board_substep * 1e6)))
         self.board.pose = tuple(float(v) for v in start)  # type: ignore[assignment]
-        clutter = random_clutter(plane_map, settings.clutter, rng, keep_clear=[tuple(start[:2])]) if settings.clutter else ()
-        self.scene = SimScene(plane_map, clutter=clutter)
         self._rng = np.random.default_rng(settings.seed + 1)
         self._frame_numbers = {c.name: 0 for c in robot.cameras}
 

@@ -33,6 +33,7 @@ from typing import Callable, Dict, List, Optional, Sequence
 import numpy as np
 
 from drivers.camera_base import CameraDriver, CameraState
+from drivers.realsense_imu import yaw_rate_robot
 from robot import mcap_schema, sd_notify
 from robot.config import RobotConfig
 from robot.controller_core import ControllerCore
@@ -183,8 +184,8 @@ class RobotApp:
                      self._loop.create_task(self._status_task(), name="status")]
             if self.localizer is not None:
                 tasks.append(self._loop.create_task(self._localization_task(), name="localization"))
-            sd_notify.ready(self._status_line())
-            log.info("running: %s", self._status_line())
+            sd_notify.ready(self.status_line())
+            log.info("running: %s", self.status_line())
             await self._stop.wait()
             return 0
         finally:
@@ -285,8 +286,6 @@ class RobotApp:
             pass
 
     def _imu(self, camera: CameraDriver, sample) -> None:
-        from drivers.realsense_imu import yaw_rate_robot
-
         try:
             wz = yaw_rate_robot(sample, camera.T_robot_imu)
         except (AttributeError, ValueError) as e:
@@ -415,7 +414,7 @@ class RobotApp:
         while True:
             await asyncio.sleep(self.options.status_period)
             t = time.monotonic()
-            line = self._status_line()
+            line = self.status_line()
             sd_notify.status(line)
             if self.core.initialized:
                 (x, y, phi), P = self.core.pose(t)
@@ -441,7 +440,7 @@ class RobotApp:
             s["command_reason"] = self.last_output.reason
         return s
 
-    def _status_line(self) -> str:
+    def status_line(self) -> str:
         s = self.status()
         pose = (f"pose ({s['x']:.3f}, {s['y']:.3f}, {math.degrees(s['phi']):.1f} deg)" if "x" in s else "no pose")
         reason = f" ({s['reason']})" if s.get("reason") else ""

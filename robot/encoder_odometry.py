@@ -40,6 +40,7 @@ class EncoderOdometry:
     def __init__(self, ticks_per_rev: int, max_wheel_speed: float):
         if ticks_per_rev <= 0:
             raise ValueError(f"ticks_per_rev must be > 0, got {ticks_per_rev}")
+        self.ticks_per_rev = int(ticks_per_rev)
         self.rad_per_tick = _TWO_PI / ticks_per_rev
         self.max_wheel_speed = float(max_wheel_speed)
         self.implausible = 0  # reports refused as faster than any wheel can turn
@@ -70,7 +71,7 @@ class EncoderOdometry:
                              speeds=tuple(x * k / dt for x in d), dt=dt, t_board=board_s)
 
     def speed_variance(self, dt: float) -> float:
-        return quantisation_variance(round(_TWO_PI / self.rad_per_tick), dt)
+        return quantisation_variance(self.ticks_per_rev, dt)
 
 
 def quantisation_variance(ticks_per_rev: int, dt: float) -> float:

@@ -75,11 +75,16 @@ def save_floor_plan(plane_map: PlaneMap, path, title: Optional[str] = None, labe
     ax.grid(True, lw=0.3, alpha=0.5)
     ax.set_title(title or f"{plane_map.source}: {n} planes, z {lo[2]:.2f}..{hi[2]:.2f} m", fontsize=9)
     fig.tight_layout()
+    return save_figure(plt, fig, path, "the floor plan")
+
+
+def save_figure(plt, fig, path, what: str = "the figure") -> Path:
+    """Write ``fig`` as a PNG and close it; a path that cannot be written is one clear error."""
     out = Path(path)
     try:
         fig.savefig(out, dpi=120)
     except OSError as e:
-        raise ConfigError(f"{out}: cannot write the floor plan: {e}") from None
+        raise ConfigError(f"{out}: cannot write {what}: {e}") from None
     finally:
         plt.close(fig)
     return out

@@ -7,21 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from robot.errors import ConfigError
-from robot.map_plot import _pyplot
+from robot.map_plot import _pyplot, save_figure
 from robot.plane_map import PlaneMap
 from robot.sim_experiment import ExperimentResult
 
 _COLOURS = {"vision": "tab:blue", "odometry": "tab:red"}
-
-
-def _save(fig, path) -> Path:
-    out = Path(path)
-    try:
-        fig.savefig(out, dpi=120)
-    except OSError as e:
-        raise ConfigError(f"{out}: cannot write the figure: {e}") from None
-    return out
 
 
 def save_error_plot(exp: ExperimentResult, path) -> Path:
@@ -44,10 +34,7 @@ def save_error_plot(exp: ExperimentResult, path) -> Path:
     ax.legend(fontsize=8)
     ax.set_title("Path tracking in the paper arena: error at each target", fontsize=10)
     fig.tight_layout()
-    try:
-        return _save(fig, path)
-    finally:
-        plt.close(fig)
+    return save_figure(plt, fig, path)
 
 
 def save_trajectory_plot(exp: ExperimentResult, plane_map: PlaneMap, path) -> Path:
@@ -77,7 +64,4 @@ def save_trajectory_plot(exp: ExperimentResult, plane_map: PlaneMap, path) -> Pa
     ax.legend(fontsize=8, loc="center")
     ax.set_title("True trajectories, all runs", fontsize=10)
     fig.tight_layout()
-    try:
-        return _save(fig, path)
-    finally:
-        plt.close(fig)
+    return save_figure(plt, fig, path)

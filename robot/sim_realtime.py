@@ -10,16 +10,15 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Iterator, List, Optional
 
-import numpy as np
-
 from drivers.chassis_serial import SerialChassis
-from drivers.depth_render import SimScene, random_clutter
 from drivers.firmware_emulator import FirmwareEmulator
 from drivers.sim_camera import SimCamera
+from drivers.sim_world import sample_world
 from robot.app import AppOptions, RobotApp
 from robot.config import RobotConfig
 from robot.path_file import PathPlan
 from robot.plane_map import PlaneMap
+from robot.sim_runner import DwellWatcher
 
 
 @dataclass(frozen=True)
@@ -44,14 +43,11 @@ class SimRig:
 def sim_rig(robot: RobotConfig, plane_map: PlaneMap, start, settings: RealtimeSimSettings = RealtimeSimSettings(),
             options: Optional[AppOptions] = None, **app_kwargs) -> Iterator[SimRig]:
     """Emulator + fake cameras + app, torn down on exit. ``start``: the true initial pose."""
-    rng = np.random.default_rng(settings.seed)
-    radius_error = tuple(float(v) for v in rng.normal(0.0, settings.radius_error_std, 4))
+    radius_error, scene = sample_world(plane_map, start, settings.seed, settings.radius_error_std, settings.clutter)
     emulator = FirmwareEmulator(robot.chassis, radius_error=radius_error, slip_noise=settings.slip_noise,
                                 seed=settings.seed)
     emulator.board.pose = tuple(float(v) for v in start)
     emulator.start()
-    clutter = random_clutter(plane_map, settings.clutter, rng, keep_clear=[tuple(start[:2])]) if settings.clutter else ()
-    scene = SimScene(plane_map, clutter=clutter)
     cameras = [SimCamera(robot, c.name, scene, lambda: emulator.pose, fps=settings.fps, decimation=settings.decimation,
                          seed=settings.seed * 10 + i, cache=settings.frame_cache,
                          imu_rate=float(c.realsense.gyro_fps) if c.realsense.imu_enabled else 0.0)
@@ -76,18 +72,16 @@ def run_realtime(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, args) 
 
         recorder = BackgroundRecorder(Recorder(args.record))
     errors = []
+    dwell = DwellWatcher()
 
     def on_tick(app: RobotApp, t: float) -> None:
-        traj = app.core.trajectory
-        state = (traj.waypoint_index, traj.state)
-        prev = getattr(on_tick, "prev", None)
-        if prev is not None and prev[1] == "arrived" and (state[0] != prev[0] or state[1] == "done"):
-            wp = plan.waypoints[prev[0]]
+        reached = dwell.finished_dwell(app.core.trajectory)
+        if reached is not None:
+            wp = plan.waypoints[reached]
             x, y, _ = rig.emulator.pose
-            errors.append((prev[0], math.hypot(x - wp.x, y - wp.y)))
-            print(f"target {prev[0] + 1}: ({wp.x:.2f}, {wp.y:.2f}) reached, true error {errors[-1][1] * 1e3:.1f} mm; "
-                  f"{app._status_line()}", flush=True)
-        on_tick.prev = state
+            errors.append((reached, math.hypot(x - wp.x, y - wp.y)))
+            print(f"target {reached + 1}: ({wp.x:.2f}, {wp.y:.2f}) reached, true error {errors[-1][1] * 1e3:.1f} mm; "
+                  f"{app.status_line()}", flush=True)
 
     with sim_rig(robot, plane_map, start, settings, options, plan=plan, recorder=recorder, on_tick=on_tick) as rig:
         rc = asyncio.run(rig.app.run())

@@ -14,7 +14,7 @@ import heapq
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Tuple
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -26,7 +26,7 @@ from robot.errors import ConfigError
 from robot.localizer import Localizer
 from robot.path_file import PathPlan
 from robot.plane_map import PlaneMap
-from robot.trajectory import ARRIVED, DONE
+from robot.trajectory import ARRIVED, DONE, TrajectoryController
 
 _US = 1_000_000
 
@@ -86,6 +86,22 @@ class RunResult:
                 "counters": self.counters}
 
 
+class DwellWatcher:
+    """Tells when the trajectory has finished dwelling at a waypoint: the instant the paper's
+    experiment measures the error at that target. Feed it the controller after every tick."""
+
+    def __init__(self) -> None:
+        self._prev: Optional[Tuple[int, str]] = None
+
+    def finished_dwell(self, trajectory: TrajectoryController) -> Optional[int]:
+        """Index of the waypoint whose dwell ended at this tick, else None."""
+        index, state = trajectory.waypoint_index, trajectory.state
+        prev, self._prev = self._prev, (index, state)
+        if prev is not None and prev[1] == ARRIVED and (index != prev[0] or state == DONE):
+            return prev[0]
+        return None
+
+
 def run_path(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, settings: RunSettings) -> RunResult:
     """Drive ``plan`` once in the simulated world; the start pose is the plan's (exactly)."""
     if plan.start is None:
@@ -118,7 +134,7 @@ def run_path(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, settings: 
     targets: List[TargetResult] = []
     localize_ms: List[float] = []
     render_ms: List[float] = []
-    prev_index, prev_state = 0, ""
+    dwell = DwellWatcher()
     reason = f"not finished within {settings.max_time:.0f} s of simulated time"
     finished = False
     now_us = 0
@@ -159,13 +175,12 @@ def run_path(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, settings: 
             out = core.control_step(t)
             if out.wheels is not None:
                 chassis.send_wheel_speeds(out.wheels)
-            traj = core.trajectory
-            index, state = traj.waypoint_index, traj.state
-            if prev_state == ARRIVED and (index != prev_index or state == DONE):
-                wp = plan.waypoints[prev_index]
+            state = core.trajectory.state
+            reached = dwell.finished_dwell(core.trajectory)
+            if reached is not None:
+                wp = plan.waypoints[reached]
                 (x, y, phi), _ = core.pose(t)
-                targets.append(TargetResult(prev_index, (wp.x, wp.y), world.truth, (x, y, phi), t))
-            prev_index, prev_state = index, state
+                targets.append(TargetResult(reached, (wp.x, wp.y), world.truth, (x, y, phi), t))
             if core.finished:
                 finished, reason = True, "path complete"
                 break

@@ -87,10 +87,8 @@ def measure_realtime(seconds: float = 20.0, fps: float = 30.0) -> Dict[str, obje
             loop.call_later(3.0 + seconds, end_window)
             return await rig.app.run()
 
-        t_render0 = time.thread_time()
         asyncio.run(main())
         render_s = sum(c.render_seconds for c in rig.cameras)
-        del t_render0
         result["render_ms_per_frame"] = 1e3 * render_s / max(1, sum(c._cache_n for c in rig.cameras))
         result["emulator_thread"] = rig.emulator._thread.native_id if rig.emulator._thread else None
     wall = marks["wall1"] - marks["wall0"]
