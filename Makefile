@@ -19,6 +19,7 @@ run: $(STAMP)
 lint: $(STAMP)
 	$(PY) -m ruff check robot drivers firmware_protocol tests scripts
 	$(VENV)/bin/vermin --no-tips --violations -t=3.8- robot drivers firmware_protocol scripts
+	$(VENV)/bin/lint-imports --no-cache
 
 test: lint test-only
 

@@ -25,14 +25,14 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drivers.depth_render import Box, DepthNoise, SimScene, random_clutter, render_depth_frame  # noqa: E402
-from drivers.sim_building import free_space_poses, grid_for_planes, room_grid_map  # noqa: E402
+from drivers.sim.building import free_space_poses, grid_for_planes, room_grid_map  # noqa: E402
+from drivers.sim.render import Box, DepthNoise, SimScene, random_clutter, render_depth_frame  # noqa: E402
+from robot.base.geometry import pose_to_T_ground_robot  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
-from robot.crlb import pose_crlb  # noqa: E402
-from robot.geometry import pose_to_T_ground_robot  # noqa: E402
-from robot.localizer import DEFAULT_COARSE_STD, Localizer  # noqa: E402
-from robot.plane_index import PlaneIndex  # noqa: E402
-from robot.plane_map import PlaneMap, load_plane_map  # noqa: E402
+from robot.localization.crlb import pose_crlb  # noqa: E402
+from robot.localization.localizer import DEFAULT_COARSE_STD, Localizer  # noqa: E402
+from robot.maps.plane_index import PlaneIndex  # noqa: E402
+from robot.maps.plane_map import PlaneMap, load_plane_map  # noqa: E402
 
 ROBOT = load_robot_config(ROOT / "config/robot.yaml")
 PARAMS = ROBOT.localizer

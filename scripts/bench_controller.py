@@ -30,10 +30,10 @@ import numpy as np  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from robot.app import AppOptions  # noqa: E402
+from robot.app.controller import AppOptions  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
-from robot.plane_map import load_plane_map  # noqa: E402
-from robot.sim_realtime import RealtimeSimSettings, sim_rig  # noqa: E402
+from robot.maps.plane_map import load_plane_map  # noqa: E402
+from robot.sim.realtime import RealtimeSimSettings, sim_rig  # noqa: E402
 
 
 def _thread_cpu() -> Dict[int, float]:
@@ -129,7 +129,7 @@ def measure_realtime(seconds: float = 20.0, fps: float = 30.0) -> Dict[str, obje
 def measure_experiment(quick: bool) -> str:
     runs = 3 if quick else 15
     t0 = time.monotonic()
-    p = subprocess.run([sys.executable, "-m", "robot.cli", "sim", "--path", "config/paths/paper_4_3.yaml", "--runs",
+    p = subprocess.run([sys.executable, "-m", "robot.cli.main", "sim", "--path", "config/paths/paper_4_3.yaml", "--runs",
                         str(runs), "--out-dir", "docs/bench"], cwd=REPO, capture_output=True, text=True)
     wall = time.monotonic() - t0
     if p.returncode != 0:

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from robot.config import load_robot_config  # noqa: E402
-from robot.map_tools import camera_band_from_config, check_plane_map  # noqa: E402
+from robot.maps.tools import camera_band_from_config, check_plane_map  # noqa: E402
 
 IFC_DIR = ROOT.parent / "shared" / "data" / "ifc"
 MODELS = [  # (file, storey for the ground-floor map, map written to config/maps)
@@ -41,7 +41,7 @@ def large_map_check(repeats: int):
     """`map check` on a map the size of a large floor: the Institute ground floor tiled 4 x 3."""
     import yaml
 
-    from robot.map_tools import check_map_data
+    from robot.maps.tools import check_map_data
 
     base = yaml.safe_load((ROOT / "config" / "maps" / "institute_ground.yaml").read_text())
     planes = []
@@ -61,7 +61,7 @@ def run(quick: bool = False) -> str:
     try:
         import ifcopenshell
 
-        from robot.ifc_import import ImportOptions, import_storey, list_storeys, open_model
+        from robot.maps.ifc_import import ImportOptions, import_storey, list_storeys, open_model
     except ImportError as e:
         return "\n".join(["## IFC import (issue 5)", "", f"_import not run: {e} (pip install .[bim])_", "",
                           *large_map_check(1 if quick else 3)])

@@ -13,11 +13,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from drivers.depth_render import DepthNoise, SimScene, random_clutter, render_depth_frame  # noqa: E402
+from drivers.sim.render import DepthNoise, SimScene, random_clutter, render_depth_frame  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
-from robot.crlb import pose_crlb  # noqa: E402
-from robot.localizer import Localizer, coarse_covariance  # noqa: E402
-from robot.plane_map import load_plane_map  # noqa: E402
+from robot.localization.crlb import pose_crlb  # noqa: E402
+from robot.localization.localizer import Localizer, coarse_covariance  # noqa: E402
+from robot.maps.plane_map import load_plane_map  # noqa: E402
 
 ROBOT = load_robot_config(ROOT / "config/robot.yaml")
 ARENA = load_plane_map(ROOT / "config/maps/paper_arena.yaml")

@@ -43,8 +43,8 @@ CAMERA = "front"
 
 def _frames(robot, scene, n_render: int, n_total: int):
     """``n_total`` frames at 30 fps cycling through ``n_render`` rendered ones (rendering is slow)."""
-    from drivers.realsense_recording import simulate_run
-    from robot.frames import DepthFrame
+    from drivers.sim.drive import simulate_run
+    from robot.base.samples import DepthFrame
 
     rendered, _ = simulate_run(robot, scene, CAMERA, POSE, VELOCITY, frames=n_render,
                                rng=np.random.default_rng(1))
@@ -58,7 +58,7 @@ def _frames(robot, scene, n_render: int, n_total: int):
 
 
 def _play(robot, path, on_frame, real_time=False, timeout=120.0):
-    from drivers.realsense_camera import PlaybackFile, RealSenseCamera, RealSenseConfig
+    from drivers.camera.realsense import PlaybackFile, RealSenseCamera, RealSenseConfig
 
     # the robot's camera, with a shorter frame timeout: the end of a recording is noticed by one
     cam_cfg = dataclasses.replace(robot.camera(CAMERA), realsense=RealSenseConfig(frame_timeout_ms=300))
@@ -81,7 +81,7 @@ def _pct(xs, q):
 
 def _filter_costs(rs, path, n_frames: int):
     """Median ms per frame of each librealsense filter, on the recording's 848x480 frames."""
-    from drivers.realsense_camera import RealSenseConfig, make_filters
+    from drivers.camera.realsense import RealSenseConfig, make_filters
 
     chain = make_filters(rs, RealSenseConfig(decimation=2, spatial_filter=True, temporal_filter=True))
     # The decimation filter is timed on its own on full frames; the disparity-domain filters on
@@ -124,17 +124,17 @@ def _filter_costs(rs, path, n_frames: int):
 def run(quick: bool = False) -> str:
     title = "## Real camera driver: librealsense playback (issue 6)"
     try:
-        from drivers.realsense_camera import load_pyrealsense2, pyrealsense2_version
+        from drivers.camera.realsense import load_pyrealsense2, pyrealsense2_version
 
         rs = load_pyrealsense2()
     except Exception as e:  # pyrealsense2 missing or libusb absent
         return f"{title}\n\n_not run: {e}_\n"
-    from drivers.depth_render import SimScene
-    from drivers.realsense_recording import write_recording
-    from robot.ekf import PoseFilter
-    from robot.geometry import wrap_angle
-    from robot.localizer import Localizer
-    from robot.plane_map import load_plane_map
+    from drivers.camera.bag import write_recording
+    from drivers.sim.render import SimScene
+    from robot.base.geometry import wrap_angle
+    from robot.fusion.ekf import PoseFilter
+    from robot.localization.localizer import Localizer
+    from robot.maps.plane_map import load_plane_map
 
     robot = load_robot_config(ROOT / "config" / "robot.yaml")
     plane_map = load_plane_map(ROOT / "config" / "maps" / "paper_arena.yaml")

@@ -19,8 +19,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from robot import mcap_schema as ms  # noqa: E402
-from robot.frames import DepthFrame  # noqa: E402
+from robot.base.samples import DepthFrame  # noqa: E402
+from robot.recording import schema as ms  # noqa: E402
 
 
 def _frame(rng, i: int, width: int = 848, height: int = 480) -> DepthFrame:
@@ -45,7 +45,7 @@ def _median_ms(fn, n: int) -> float:
 
 
 def run(quick: bool = False) -> str:
-    from robot.recorder import Recorder
+    from robot.recording.recorder import Recorder
 
     rng = np.random.default_rng(0)
     n = 5 if quick else 30

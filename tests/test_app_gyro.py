@@ -6,10 +6,10 @@ import math
 
 import numpy as np
 
-from robot.app import RobotApp
+from robot.app.controller import RobotApp
+from robot.base.samples import ImuSample
 from robot.config import load_robot_config
-from robot.frames import ImuSample
-from robot.plane_map import load_plane_map
+from robot.maps.plane_map import load_plane_map
 
 ROBOT = load_robot_config("config/robot.yaml")
 

@@ -9,12 +9,12 @@ import socket
 import threading
 import time
 
-from robot import sd_notify
-from robot.app import AppOptions
+from robot.app import sd_notify
+from robot.app.controller import AppOptions
 from robot.config import load_robot_config
-from robot.path_file import parse_path
-from robot.plane_map import load_plane_map
-from robot.sim_realtime import RealtimeSimSettings, sim_rig
+from robot.control.path_file import parse_path
+from robot.maps.plane_map import load_plane_map
+from robot.sim.realtime import RealtimeSimSettings, sim_rig
 
 ROBOT = load_robot_config("config/robot.yaml")
 ARENA = load_plane_map("config/maps/paper_arena.yaml")

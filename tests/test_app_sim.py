@@ -13,14 +13,14 @@ from dataclasses import replace
 
 import pytest
 
-from drivers.sim_world import WorldSettings
+from drivers.sim.world import WorldSettings
 from firmware_protocol import SetWheelSpeeds, Stop
-from robot.app import AppOptions
+from robot.app.controller import AppOptions
 from robot.config import load_robot_config
-from robot.path_file import load_path, parse_path
-from robot.plane_map import load_plane_map
-from robot.sim_realtime import RealtimeSimSettings, sim_rig
-from robot.sim_runner import RunSettings, run_path
+from robot.control.path_file import load_path, parse_path
+from robot.maps.plane_map import load_plane_map
+from robot.sim.realtime import RealtimeSimSettings, sim_rig
+from robot.sim.runner import RunSettings, run_path
 
 ROBOT = load_robot_config("config/robot.yaml")
 ARENA = load_plane_map("config/maps/paper_arena.yaml")
@@ -174,7 +174,7 @@ def test_malformed_path_file_is_refused_before_anything_starts(tmp_path):
     bad.write_text("start: {x: 0, y: 0}\nwaypoints:\n  - {x: 0.5, y: 0.5, speed: fast}\n")
     for cmd in (["sim", "--path", str(bad), "--runs", "1"], ["sim", "--realtime", "--path", str(bad)],
                 ["run", "--config", "config/robot.yaml", "--path", str(bad)]):
-        p = subprocess.run([sys.executable, "-m", "robot.cli", *cmd], capture_output=True, text=True, timeout=60)
+        p = subprocess.run([sys.executable, "-m", "robot.cli.main", *cmd], capture_output=True, text=True, timeout=60)
         assert p.returncode == 2, p.stderr
         lines = p.stderr.strip().splitlines()
         assert len(lines) == 1 and "bad.yaml" in lines[0] and "speed" in lines[0] and "Traceback" not in p.stderr
@@ -182,7 +182,7 @@ def test_malformed_path_file_is_refused_before_anything_starts(tmp_path):
 
 def test_world_seed_decides_the_wheels_so_modes_compare_fairly():
     a = replace(WorldSettings(), seed=5)
-    from drivers.sim_world import SimWorld
+    from drivers.sim.world import SimWorld
 
     w1 = SimWorld(ROBOT, ARENA, (0, 0, 0), a)
     w2 = SimWorld(ROBOT, ARENA, (0, 0, 0), a)
@@ -192,6 +192,6 @@ def test_world_seed_decides_the_wheels_so_modes_compare_fairly():
 
 @pytest.mark.parametrize("value", ["0", "-3"])
 def test_sim_refuses_bad_run_counts(value):
-    p = subprocess.run([sys.executable, "-m", "robot.cli", "sim", "--path", "config/paths/paper_4_3.yaml", "--runs", value],
+    p = subprocess.run([sys.executable, "-m", "robot.cli.main", "sim", "--path", "config/paths/paper_4_3.yaml", "--runs", value],
                        capture_output=True, text=True, timeout=60)
     assert p.returncode == 2 and "--runs" in p.stderr

@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.firmware_emulator import BoardModel, FirmwareEmulator
-from robot import bench_checks as bc
-from robot import cli_bench
-from robot.bench_checks import FAIL, PASS, SKIP, BenchOptions, CameraMeasurement
+from drivers.chassis.emulator import BoardModel, FirmwareEmulator
+from robot.app import bench_checks as bc
+from robot.app.bench_checks import FAIL, PASS, SKIP, BenchOptions, CameraMeasurement
+from robot.base.errors import ConfigError, InputError
+from robot.cli import bench as cli_bench
 from robot.config import CameraConfig, ChassisConfig
-from robot.errors import ConfigError, InputError
 
 # a loaded test machine can stall the emulator thread for 100 ms (as in test_chassis_driver.py)
 CFG = ChassisConfig(link_timeout=0.5, reconnect_backoff_max=0.2)
@@ -191,9 +191,9 @@ def test_bad_input_is_a_robot_error_and_exit_status_2(tmp_path, capsys):
         bench_cli(["--emulate", "--port", "/dev/ttyUSB0"], capsys)
     with pytest.raises(ConfigError):
         bench_cli(["--config", str(tmp_path / "missing.yaml")], capsys)
-    from robot import cli
+    from robot.cli import main as cli
 
-    assert "robot.cli_bench" in cli.COMMAND_MODULES
+    assert cli_bench in cli.COMMAND_MODULES
     assert cli.main(["bench", "--config", str(tmp_path / "missing.yaml")]) == 2
     assert "robotctl bench: error:" in capsys.readouterr().err
 
@@ -264,11 +264,12 @@ def test_the_camera_measurement_reads_frames_through_the_real_driver(tmp_path):
     """A simulated D435i recording played through pyrealsense2 and the unmodified driver: the bench
     sees its frames, intrinsics and identity the way it would see a camera's."""
     pytest.importorskip("pyrealsense2")
-    from drivers.depth_render import SimScene
-    from drivers.realsense_camera import PlaybackFile
-    from drivers.realsense_recording import simulate_run, write_recording
+    from drivers.camera.bag import write_recording
+    from drivers.camera.realsense import PlaybackFile
+    from drivers.sim.drive import simulate_run
+    from drivers.sim.render import SimScene
     from robot.config import load_robot_config
-    from robot.plane_map import load_plane_map
+    from robot.maps.plane_map import load_plane_map
 
     root = Path(__file__).resolve().parents[1]
     robot = load_robot_config(root / "config" / "robot.yaml")

@@ -17,11 +17,13 @@ import pytest
 import serial
 
 import firmware_protocol as fp
-from drivers.chassis_serial import BoardClock, LinkState, SerialChassis, reconnect_delay, wrap_delta_i32
-from drivers.firmware_emulator import FirmwareEmulator
-from robot import cli_chassis
+from drivers.chassis.base import LinkState
+from drivers.chassis.emulator import FirmwareEmulator
+from drivers.chassis.serial_chassis import BoardClock, SerialChassis, reconnect_delay
+from firmware_protocol.counters import delta_i32 as wrap_delta_i32
+from robot.base.errors import DriverError
+from robot.cli import chassis as cli_chassis
 from robot.config import ChassisConfig
-from robot.errors import DriverError
 
 # a loaded test machine can stall the emulator thread for 100 ms; the robot's 0.1 s stays the default
 CFG = ChassisConfig(link_timeout=0.5, reconnect_backoff_max=0.2)

@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from robot.cli import main
+from robot.cli.main import main
 
 ROBOT = "config/robot.yaml"
 MAP = "config/maps/paper_arena.yaml"
@@ -72,7 +72,7 @@ def test_visible_json(capsys):
 def test_console_script_runs_without_traceback(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("planes: [\n")
-    r = subprocess.run([sys.executable, "-m", "robot.cli", "visible", "--map", str(bad), "--pose", "0", "0", "0"],
+    r = subprocess.run([sys.executable, "-m", "robot.cli.main", "visible", "--map", str(bad), "--pose", "0", "0", "0"],
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert "Traceback" not in r.stderr

@@ -7,10 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from drivers.chassis.encoders import EncoderOdometry
+from firmware_protocol.counters import delta_i32 as wrap_delta_i32
+from robot.base.samples import WheelOdometry
 from robot.config import load_robot_config
-from robot.controller_core import ControllerCore
-from robot.encoder_odometry import EncoderOdometry, WheelOdometry, wrap_delta_i32
-from robot.path_file import parse_path
+from robot.control.core import ControllerCore
+from robot.control.path_file import parse_path
 
 ROBOT = load_robot_config("config/robot.yaml")
 COV = np.diag([1e-4, 1e-4, 1e-4])

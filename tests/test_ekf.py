@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from robot.ekf import FilterConfig, PoseFilter, body_increment, chi2_threshold
-from robot.geometry import wrap_angle
-from robot.measurements import PlaneMeasurement
+from robot.base.geometry import wrap_angle
+from robot.config import FilterConfig
+from robot.fusion.ekf import PoseFilter, body_increment, chi2_threshold
+from robot.localization.measurements import PlaneMeasurement
 
 # The paper arena's walls as (id, n_G, d_G), normals facing inward (config/maps/paper_arena.yaml).
 WALLS = {

@@ -14,9 +14,9 @@ import pytest
 import serial
 
 import firmware_protocol as fp
-from drivers.firmware_emulator import BoardModel, FirmwareEmulator, LineFaults
+from drivers.chassis.emulator import BoardModel, FirmwareEmulator, LineFaults
 from robot.config import ChassisConfig
-from robot.kinematics import make_kinematics
+from robot.control.kinematics import make_kinematics
 
 CFG = ChassisConfig()
 

@@ -7,8 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from robot.config import load_robot_config
-from robot.geometry import (
+from robot.base.geometry import (
     R_BODY_OPTICAL,
     invert_transform,
     mount_to_T_robot_camera,
@@ -18,6 +17,7 @@ from robot.geometry import (
     transform_points,
     wrap_angle,
 )
+from robot.config import load_robot_config
 
 
 def random_transform(rng):

@@ -1,4 +1,4 @@
-"""IFC import (robot.ifc_import, robot.wall_faces) on the shared real models and on small IFC files
+"""IFC import (robot.maps.ifc_import, robot.maps.wall_faces) on the shared real models and on small IFC files
 written here (millimetre units, openings, a wall without a body, an unsupported schema).
 
 The real models are read from ../shared/data/ifc/ (see tests/data/README.md for their sources and
@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot import ifc_import
+from robot.base.errors import ConfigError
 from robot.config import load_robot_config
-from robot.errors import ConfigError
-from robot.ifc_import import ImportOptions, import_storey, list_storeys, open_model
-from robot.map_tools import camera_band_from_config, check_plane_map
-from robot.plane_map import load_plane_map
+from robot.maps import ifc_import
+from robot.maps.ifc_import import ImportOptions, import_storey, list_storeys, open_model
+from robot.maps.plane_map import load_plane_map
+from robot.maps.tools import camera_band_from_config, check_plane_map
 
 ROOT = Path(__file__).resolve().parents[1]
 IFC_DIR = ROOT.parent / "shared" / "data" / "ifc"
@@ -393,7 +393,7 @@ def test_unknown_storey_lists_the_storeys(room_ifc):
 def run_cli(argv):
     import argparse
 
-    from robot import cli_map
+    from robot.cli import maps as cli_map
 
     parser = argparse.ArgumentParser()
     cli_map.register(parser.add_subparsers(dest="command"))
@@ -426,8 +426,8 @@ def test_cli_lists_storeys_then_imports_one(room_ifc, tmp_path):
 
 def test_robot_side_modules_do_not_load_ifcopenshell_or_matplotlib():
     # The robot installs without the bim and viz extras: loading the map tools must not need them.
-    code = ("import sys, robot.ifc_import, robot.cli_map, robot.map_tools, robot.map_plot, robot.cli; "
-            "robot.cli.build_parser(); print(sorted(m for m in ('ifcopenshell', 'shapely', 'matplotlib') "
+    code = ("import sys, robot.maps.ifc_import, robot.cli.maps, robot.maps.tools, robot.maps.plot, robot.cli.main; "
+            "robot.cli.main.build_parser(); print(sorted(m for m in ('ifcopenshell', 'shapely', 'matplotlib') "
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
+from robot.base.geometry import integrate_twist
 from robot.config import ChassisConfig
-from robot.kinematics import MecanumKinematics, integrate_twist, make_kinematics
+from robot.control.kinematics import MecanumKinematics, make_kinematics
 
 CFG = ChassisConfig()  # r = 0.03, lx = 0.075, ly = 0.085
 K = make_kinematics(CFG)

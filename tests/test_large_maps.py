@@ -10,15 +10,15 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers.depth_render import Box, SimScene, render_depth_metres
-from drivers.sim_building import free_space_poses, room_grid_map
+from drivers.sim.building import free_space_poses, room_grid_map
+from drivers.sim.render import Box, SimScene, render_depth_metres
+from robot.base.geometry import pose_to_T_ground_robot, transform_plane, transform_points
 from robot.config import load_robot_config
-from robot.geometry import pose_to_T_ground_robot, transform_plane, transform_points
-from robot.plane_index import PlaneIndex
-from robot.plane_map import PlaneMap, load_plane_map, make_plane
-from robot.roi import CameraGrid, predict_plane_views, rasterize_views, shrink_rois
-from robot.visibility import clip_polygon, project
-from robot.visible_planes import visible_planes
+from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views, shrink_rois
+from robot.localization.visible_planes import visible_planes
+from robot.maps.plane_index import PlaneIndex
+from robot.maps.plane_map import PlaneMap, load_plane_map, make_plane
+from robot.maps.visibility import clip_polygon, project
 
 ROOT = Path(__file__).resolve().parents[1]
 ROBOT = load_robot_config(ROOT / "config/robot.yaml")

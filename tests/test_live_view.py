@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from robot import live_view as lv
-from robot.errors import ConfigError, DriverError
-from robot.localizer import PlaneReport
-from robot.plane_map import load_plane_map
+from robot.base.errors import ConfigError, DriverError
+from robot.localization.localizer import PlaneReport
+from robot.maps.plane_map import load_plane_map
+from robot.recording import live_view as lv
 
 ROOT = Path(__file__).resolve().parents[1]
 ARENA = load_plane_map(ROOT / "config" / "maps" / "paper_arena.yaml")
@@ -361,9 +361,9 @@ def test_the_app_gets_the_null_view_when_off_and_one_clear_line_when_the_extra_i
 
 @needs_server
 def test_the_running_app_publishes_pose_and_roi_images_of_its_frames():
-    from robot.app import AppOptions
+    from robot.app.controller import AppOptions
     from robot.config import load_robot_config
-    from robot.sim_realtime import RealtimeSimSettings, sim_rig
+    from robot.sim.realtime import RealtimeSimSettings, sim_rig
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -8,11 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from drivers.depth_render import Box, SimScene, decimated_intrinsics, render_depth_frame, render_depth_metres
+from drivers.sim.render import Box, SimScene, decimated_intrinsics, render_depth_frame, render_depth_metres
+from robot.base.geometry import pose_to_T_ground_robot
 from robot.config import load_robot_config
-from robot.geometry import pose_to_T_ground_robot
-from robot.localizer import Localizer, coarse_covariance
-from robot.plane_map import PlaneMap, load_plane_map, make_plane
+from robot.localization.localizer import Localizer, coarse_covariance
+from robot.maps.plane_map import PlaneMap, load_plane_map, make_plane
 
 ROBOT = load_robot_config("config/robot.yaml")
 ARENA = load_plane_map("config/maps/paper_arena.yaml")

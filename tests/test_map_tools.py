@@ -1,4 +1,4 @@
-"""Map summary, camera height band and validity checks (robot.map_tools), and `robotctl map info|check`."""
+"""Map summary, camera height band and validity checks (robot.maps.tools), and `robotctl map info|check`."""
 
 from __future__ import annotations
 
@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 import yaml
 
-from robot import cli_map
+from robot.base.errors import ConfigError
+from robot.cli import maps as cli_map
 from robot.config import CameraConfig, load_robot_config
-from robot.errors import ConfigError
-from robot.map_tools import (
+from robot.maps.plane_map import load_plane_map
+from robot.maps.tools import (
     camera_band_from_config,
     camera_height_band,
     check_map_data,
     map_summary,
 )
-from robot.plane_map import load_plane_map
 
 ROOT = Path(__file__).resolve().parents[1]
 ARENA = ROOT / "config" / "maps" / "paper_arena.yaml"

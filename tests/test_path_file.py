@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from robot.errors import ConfigError
-from robot.path_file import DEFAULT_SPEED, check_path_in_bounds, load_path
-from robot.plane_map import load_plane_map
+from robot.base.errors import ConfigError
+from robot.control.path_file import DEFAULT_SPEED, check_path_in_bounds, load_path
+from robot.maps.plane_map import load_plane_map
 
 
 def test_paper_path_loads_and_stays_off_the_walls(repo_root):

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from robot.pose_store import PoseStore
+from robot.app.pose_store import PoseStore
 
 COV = np.array([[1e-4, 2e-6, 0.0], [2e-6, 4e-4, 1e-6], [0.0, 1e-6, 3e-4]])
 

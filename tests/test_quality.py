@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from robot.quality import DEGRADED, LOCALIZED, LOST, QualityConfig, QualityMonitor
+from robot.config import QualityConfig
+from robot.fusion.quality import DEGRADED, LOCALIZED, LOST, QualityMonitor
 
 
 def cov(sx: float, sy: float = None, heading_deg: float = 0.2) -> np.ndarray:

@@ -26,8 +26,8 @@ from typing import List
 import numpy as np
 import pytest
 
-from drivers.camera_base import CameraState
-from drivers.realsense_camera import (
+from drivers.camera.base import CameraState
+from drivers.camera.realsense import (
     ClockMapper,
     LiveDevice,
     PlaybackFile,
@@ -35,11 +35,11 @@ from drivers.realsense_camera import (
     RealSenseConfig,
     pyrealsense2_version,
 )
-from drivers.realsense_imu import D435I_T_CAMERA_IMU, T_from_rs_extrinsics, yaw_rate_robot
+from drivers.camera.realsense_imu import D435I_T_CAMERA_IMU, T_from_rs_extrinsics, yaw_rate_robot
+from robot.base.errors import ConfigError, InputError
+from robot.base.geometry import wrap_angle
+from robot.base.samples import DepthFrame, ImuSample
 from robot.config import CameraConfig, load_robot_config, parse_robot_config
-from robot.errors import ConfigError, InputError
-from robot.frames import DepthFrame, ImuSample
-from robot.geometry import wrap_angle
 
 try:
     import pyrealsense2 as rs  # noqa: F401
@@ -162,7 +162,7 @@ def test_robot_config_loads_without_pyrealsense2(repo_root):
             "'hfov_deg': 87, 'vfov_deg': 58, 'mount': {'xyz': [0, 0, 0], 'rpy_deg': [0, 0, 0]}, "
             "'realsense': {'imu_enabled': True}}]})\n"
             "assert r.cameras[0].realsense.imu_enabled\n"
-            "import drivers.realsense_camera\n"  # the driver module too: pyrealsense2 is lazy
+            "import drivers.camera.realsense\n"  # the driver module too: pyrealsense2 is lazy
             "print('ok')\n")
     res = subprocess.run([sys.executable, "-c", code], cwd=str(repo_root), capture_output=True, text=True, timeout=60)
     assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
@@ -225,9 +225,10 @@ def sim_run(robot, repo_root, tmp_path_factory):
     """Both cameras of a simulated drive, recorded to .bag (front with IMU), plus what went in."""
     if _RS_ERROR is not None:
         pytest.skip(_RS_ERROR)
-    from drivers.depth_render import SimScene
-    from drivers.realsense_recording import simulate_run, write_recording
-    from robot.plane_map import load_plane_map
+    from drivers.camera.bag import write_recording
+    from drivers.sim.drive import simulate_run
+    from drivers.sim.render import SimScene
+    from robot.maps.plane_map import load_plane_map
 
     plane_map = load_plane_map(repo_root / "config" / "maps" / "paper_arena.yaml")
     scene = SimScene(plane_map)
@@ -248,7 +249,7 @@ def rt_path(sim_run):
     Fault tests use it: in real-time playback librealsense never blocks on the consumer, so the
     playback device can be paused from any thread (in non-real-time playback ``pause()`` waits for
     a reader that may be waiting for the consumer)."""
-    from drivers.realsense_recording import write_recording
+    from drivers.camera.bag import write_recording
 
     path = sim_run["dir"] / "front_rt.bag"
     src = sim_run["front"]
@@ -279,7 +280,7 @@ def play(robot, path, camera="front", source=None, timeout=30.0, **cfg):
 
 @needs_rs
 def test_recording_round_trip_keeps_every_frame_and_imu_sample(sim_run):
-    from drivers.realsense_recording import read_recording
+    from drivers.camera.bag import read_recording
 
     src = sim_run["front"]
     rec = read_recording(src["path"], camera="front")
@@ -296,7 +297,7 @@ def test_recording_round_trip_keeps_every_frame_and_imu_sample(sim_run):
 
 @needs_rs
 def test_write_recording_rejects_frames_that_cannot_share_a_stream(tmp_path):
-    from drivers.realsense_recording import write_recording
+    from drivers.camera.bag import write_recording
 
     K = np.array([[400.0, 0, 63.5], [0, 400.0, 47.5], [0, 0, 1]])
     a = DepthFrame("front", np.zeros((96, 128), np.uint16), 0.001, K, t_capture=0.0)
@@ -326,7 +327,7 @@ def test_playback_through_the_driver_gives_the_depth_and_intrinsics_that_went_in
 
 @needs_rs
 def test_intrinsics_come_from_the_stream_not_from_the_config(robot, sim_run, tmp_path):
-    from drivers.realsense_recording import write_recording
+    from drivers.camera.bag import write_recording
 
     src = sim_run["left"]["frames"][:3]
     K_real = np.array([[425.25, 0.0, 421.125], [0.0, 424.75, 241.5], [0.0, 0.0, 1.0]])  # a calibrated D435i
@@ -406,7 +407,7 @@ def test_imu_samples_arrive_complete_with_host_timestamps(robot, sim_run):
 def test_localizer_gets_the_right_pose_from_playback(robot, sim_run):
     """Both cameras' recordings played through two drivers at once, frames paired by number and
     localized: the pose is the simulated one."""
-    from robot.localizer import Localizer
+    from robot.localization.localizer import Localizer
 
     results = {}
     threads = []
@@ -666,7 +667,7 @@ def test_post_processing_filters_run_and_report_their_intrinsics(robot, sim_run)
 
 @needs_rs
 def test_robotctl_record_bag_and_cameras_on_the_recording(tmp_path, capsys, repo_root):
-    from robot.cli import main
+    from robot.cli.main import main
 
     out = tmp_path / "sim.bag"
     rc = main(["record-bag", "--robot", str(repo_root / "config/robot.yaml"),
@@ -692,7 +693,7 @@ def test_robotctl_record_bag_and_cameras_on_the_recording(tmp_path, capsys, repo
 
 @needs_rs
 def test_robotctl_cameras_without_a_camera_says_so(capsys):
-    from robot.cli import main
+    from robot.cli.main import main
 
     rc = main(["cameras", "--json"])
     o, e = capsys.readouterr()
@@ -700,7 +701,7 @@ def test_robotctl_cameras_without_a_camera_says_so(capsys):
 
 
 def test_robotctl_record_bag_bad_output_is_one_line_error(capsys, repo_root):
-    from robot.cli import main
+    from robot.cli.main import main
 
     rc = main(["record-bag", "--pose", "0.5", "0.5", "0", "--camera", "front", "--out", "x.db3"])
     _, e = capsys.readouterr()
@@ -708,7 +709,7 @@ def test_robotctl_record_bag_bad_output_is_one_line_error(capsys, repo_root):
 
 
 def test_device_warnings_flag_usb2_and_old_firmware():
-    from robot.cli_cameras import device_warnings
+    from robot.cli.cameras import device_warnings
 
     w = device_warnings({"name": "Intel RealSense D435I", "serial": "123", "usb_type": "2.1",
                          "firmware": "5.12.7.100", "recommended_firmware": "5.16.0.1"})

@@ -8,14 +8,14 @@ import subprocess
 import sys
 from dataclasses import replace
 
-from robot.app import AppOptions
+from robot.app.controller import AppOptions
 from robot.config import load_robot_config
-from robot.path_file import parse_path
-from robot.plane_map import load_plane_map
-from robot.recorder import BackgroundRecorder, Recorder
-from robot.recording_reader import read_recording
-from robot.replay import replay
-from robot.sim_realtime import RealtimeSimSettings, sim_rig
+from robot.control.path_file import parse_path
+from robot.maps.plane_map import load_plane_map
+from robot.recording.reader import read_recording
+from robot.recording.recorder import BackgroundRecorder, Recorder
+from robot.sim.realtime import RealtimeSimSettings, sim_rig
+from robot.sim.replay import replay
 
 ROBOT = load_robot_config("config/robot.yaml")
 ARENA = load_plane_map("config/maps/paper_arena.yaml")
@@ -46,12 +46,12 @@ def test_recorded_sim_run_replays_to_the_same_poses(tmp_path):
     assert report.ok(), report.to_json()
     assert report.localizations == app.stats.localizations
     # the CLI says the same; a shifted wall in the map makes the replay differ (exit 1)
-    p = subprocess.run([sys.executable, "-m", "robot.cli", "replay", str(path), "--json"], capture_output=True,
+    p = subprocess.run([sys.executable, "-m", "robot.cli.main", "replay", str(path), "--json"], capture_output=True,
                        text=True, timeout=120)
     assert p.returncode == 0 and json.loads(p.stdout)["identical"] is True
     moved = tmp_path / "moved.yaml"
     moved.write_text(open("config/maps/paper_arena.yaml").read().replace("1.25", "1.27"))
-    p = subprocess.run([sys.executable, "-m", "robot.cli", "replay", str(path), "--map", str(moved), "--json"],
+    p = subprocess.run([sys.executable, "-m", "robot.cli.main", "replay", str(path), "--map", str(moved), "--json"],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 1, p.stderr
     assert json.loads(p.stdout)["max_position_diff_m"] > 1e-4
@@ -72,5 +72,5 @@ def test_replay_of_a_missing_or_foreign_file_is_one_clear_error(tmp_path):
     bad = tmp_path / "x.mcap"
     bad.write_bytes(b"not an mcap file at all")
     for f in (str(tmp_path / "none.mcap"), str(bad)):
-        p = subprocess.run([sys.executable, "-m", "robot.cli", "replay", f], capture_output=True, text=True, timeout=60)
+        p = subprocess.run([sys.executable, "-m", "robot.cli.main", "replay", f], capture_output=True, text=True, timeout=60)
         assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1 and "Traceback" not in p.stderr

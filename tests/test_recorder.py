@@ -18,11 +18,11 @@ pytest.importorskip("mcap")
 
 from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
 
-from robot import mcap_schema as ms  # noqa: E402
-from robot.errors import ConfigError, InputError  # noqa: E402
-from robot.frames import DepthFrame  # noqa: E402
-from robot.recorder import BackgroundRecorder, NullRecorder, Recorder  # noqa: E402
-from robot.recording_reader import RecordingReader, read_recording, recording_segments  # noqa: E402
+from robot.base.errors import ConfigError, InputError  # noqa: E402
+from robot.base.samples import DepthFrame  # noqa: E402
+from robot.recording import schema as ms  # noqa: E402
+from robot.recording.reader import RecordingReader, read_recording, recording_segments  # noqa: E402
+from robot.recording.recorder import BackgroundRecorder, NullRecorder, Recorder  # noqa: E402
 
 MiB = 1024 * 1024
 CONFIG_YAML = "cameras:\n  - name: front\n    width: 848\n"
@@ -201,7 +201,7 @@ def test_stops_cleanly_when_free_space_falls_under_the_reserve(tmp_path, caplog)
                    chunk_bytes=64 * 1024, free_bytes=disk)
     rec.write_config(0.0, CONFIG_YAML, MAP_YAML)
     written = 0
-    with caplog.at_level(logging.WARNING, logger="robot.recorder"):
+    with caplog.at_level(logging.WARNING, logger="robot.recording.recorder"):
         for i in range(20):
             if i == 8:
                 disk.free = 499 * MiB
@@ -210,7 +210,7 @@ def test_stops_cleanly_when_free_space_falls_under_the_reserve(tmp_path, caplog)
             rec.write_pose(i / 30, float(i), 0.0, 0.0, np.eye(3))
     assert not rec.active and 8 <= written < 20
     assert "under the 500.0 MiB reserve" in rec.stopped_reason
-    assert [r.getMessage() for r in caplog.records if r.name == "robot.recorder"] == \
+    assert [r.getMessage() for r in caplog.records if r.name == "robot.recording.recorder"] == \
         ["recording stopped: " + rec.stopped_reason]
     assert rec.write_status(1.0, {"state": "x"}) is False
     rec.close()

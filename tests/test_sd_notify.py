@@ -9,7 +9,7 @@ import uuid
 
 import pytest
 
-from robot import sd_notify
+from robot.app import sd_notify
 
 
 @pytest.fixture(autouse=True)
@@ -86,11 +86,11 @@ def test_no_op_without_notify_socket():
 
 def test_send_failure_returns_false_and_warns_once(tmp_path, monkeypatch, caplog):
     monkeypatch.setenv("NOTIFY_SOCKET", str(tmp_path / "nobody-listens.sock"))
-    with caplog.at_level(logging.WARNING, logger="robot.sd_notify"):
+    with caplog.at_level(logging.WARNING, logger="robot.app.sd_notify"):
         assert sd_notify.ready() is False
         assert sd_notify.watchdog() is False
         assert sd_notify.status("still alive") is False
-    warnings = [r for r in caplog.records if r.name == "robot.sd_notify"]
+    warnings = [r for r in caplog.records if r.name == "robot.app.sd_notify"]
     assert len(warnings) == 1
     assert "nobody-listens.sock" in warnings[0].getMessage()
 

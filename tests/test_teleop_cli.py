@@ -26,7 +26,7 @@ def _read(fd, seconds):
 def test_teleop_sim_drives_forward_with_w_and_quits_with_x():
     master, slave = os.openpty()
     env = dict(os.environ, COLUMNS="200")
-    p = subprocess.Popen([sys.executable, "-m", "robot.cli", "teleop", "--sim", "--init", "0.5", "0.5", "0"],
+    p = subprocess.Popen([sys.executable, "-m", "robot.cli.main", "teleop", "--sim", "--init", "0.5", "0.5", "0"],
                          stdin=slave, stdout=slave, stderr=slave, env=env, close_fds=True)
     os.close(slave)
     try:

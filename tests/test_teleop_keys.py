@@ -14,8 +14,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robot.errors import RobotError
-from robot.teleop_keys import (
+from robot.app.teleop_terminal import CLEAR_LINE, NotATerminalError, TerminalKeyboard, fit_line, format_status
+from robot.base.errors import RobotError
+from robot.config import ControlConfig
+from robot.control.teleop_keys import (
     BACK,
     FASTER,
     FORWARD,
@@ -30,8 +32,6 @@ from robot.teleop_keys import (
     KeyDecoder,
     TeleopState,
 )
-from robot.teleop_terminal import CLEAR_LINE, NotATerminalError, TerminalKeyboard, fit_line, format_status
-from robot.trajectory import ControlConfig
 
 UP, DOWN, RIGHT_ARROW, LEFT_ARROW = b"\x1b[A", b"\x1b[B", b"\x1b[C", b"\x1b[D"
 

@@ -7,9 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from robot.ekf import body_increment
-from robot.path_file import PathPlan, StartPose, Waypoint, load_path
-from robot.trajectory import (
+from robot.control.path_file import PathPlan, StartPose, Waypoint, load_path
+from robot.control.trajectory import (
     ABORTED,
     ARRIVED,
     DONE,
@@ -20,6 +19,7 @@ from robot.trajectory import (
     ControlConfig,
     TrajectoryController,
 )
+from robot.fusion.ekf import body_increment
 
 CFG = ControlConfig()
 DT = 1.0 / CFG.rate

@@ -7,9 +7,9 @@ import math
 import numpy as np
 
 from robot.config import load_robot_config
-from robot.plane_map import PlaneMap, make_plane
-from robot.visibility import Region, classify_points, clip_polygon, extended_image_coords, frustum_planes
-from robot.visible_planes import visible_planes
+from robot.localization.visible_planes import visible_planes
+from robot.maps.plane_map import PlaneMap, make_plane
+from robot.maps.visibility import Region, classify_points, clip_polygon, extended_image_coords, frustum_planes
 
 HFOV, VFOV = math.radians(87), math.radians(58)
 

@@ -27,14 +27,14 @@ from robot.config import RobotConfig, load_robot_config
 
 @pytest.fixture(scope="session")
 def robot() -> RobotConfig:
-    from robot.cli_bench import default_config
+    from robot.cli.bench import default_config
 
     return load_robot_config(os.environ.get("ROBOT_CONFIG") or default_config())
 
 
 @pytest.fixture(scope="session")
 def rs():
-    from drivers.realsense_camera import load_pyrealsense2
+    from drivers.camera.realsense import load_pyrealsense2
 
     try:
         return load_pyrealsense2()
@@ -45,7 +45,7 @@ def rs():
 @pytest.fixture(scope="session")
 def connected(rs) -> List[str]:
     """Serial numbers of the RealSense devices present; skips when there are none."""
-    from robot.bench_checks import connected_cameras
+    from robot.app.bench_checks import connected_cameras
 
     serials, why_not = connected_cameras()
     if why_not or not serials:
@@ -57,7 +57,7 @@ def connected(rs) -> List[str]:
 def cameras(robot, connected):
     """Every configured camera; fails naming the ones that are not connected (a robot has them all:
     point ROBOT_CONFIG at a config with fewer cameras to test a subset)."""
-    from robot.bench_checks import match_cameras
+    from robot.app.bench_checks import match_cameras
 
     matches = match_cameras(robot.cameras, connected)
     missing = [f"{c.name}: {why}" for c, why in matches if why]
@@ -69,7 +69,7 @@ def cameras(robot, connected):
 @pytest.fixture
 def camera(robot, connected):
     """One configured camera that is connected (the first); skips when none is."""
-    from robot.bench_checks import match_cameras
+    from robot.app.bench_checks import match_cameras
 
     usable = [c for c, why in match_cameras(robot.cameras, connected) if why is None]
     if not usable:

@@ -18,10 +18,10 @@ import time
 import numpy as np
 import pytest
 
-from drivers.camera_base import CameraState
-from drivers.realsense_camera import LiveDevice, RealSenseCamera, RealSenseConfig
-from drivers.realsense_imu import yaw_rate_robot
-from robot.bench_checks import PASS, judge_intrinsics, judge_stream, measure_cameras
+from drivers.camera.base import CameraState
+from drivers.camera.realsense import LiveDevice, RealSenseCamera, RealSenseConfig
+from drivers.camera.realsense_imu import yaw_rate_robot
+from robot.app.bench_checks import PASS, judge_intrinsics, judge_stream, measure_cameras
 
 pytestmark = pytest.mark.hil
 

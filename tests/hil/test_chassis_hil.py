@@ -10,7 +10,7 @@ Setup:
   holds the port.
 
 The tests are skipped when the port does not exist. They use the same measurements as
-``robotctl chassis --motion`` and ``robotctl bench`` (robot.bench_checks), at full length.
+``robotctl chassis --motion`` and ``robotctl bench`` (robot.app.bench_checks), at full length.
 ``test_unplugging_the_serial_adapter_is_survived`` needs a person to pull the adapter and put it
 back (see tests/hil/conftest.py: it runs from a terminal or with ``HIL_MANUAL=1``).
 """
@@ -23,9 +23,10 @@ import time
 
 import pytest
 
-from drivers.chassis_serial import LinkState, SerialChassis
-from robot.bench_checks import PASS, TEST_WHEEL_SPEED, judge_handshake
-from robot.cli_chassis import SPEED_TOLERANCE, WATCHDOG_LIMIT, measure_watchdog, measure_wheel
+from drivers.chassis.base import LinkState
+from drivers.chassis.serial_chassis import SerialChassis
+from robot.app.bench_checks import PASS, TEST_WHEEL_SPEED, judge_handshake
+from robot.app.chassis_checks import SPEED_TOLERANCE, WATCHDOG_LIMIT, measure_watchdog, measure_wheel
 from robot.config import ChassisConfig
 
 pytestmark = pytest.mark.hil

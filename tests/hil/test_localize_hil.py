@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from drivers.realsense_camera import LiveDevice, RealSenseCamera
-from robot.geometry import wrap_angle
-from robot.localizer import Localizer
-from robot.plane_map import load_plane_map
+from drivers.camera.realsense import LiveDevice, RealSenseCamera
+from robot.base.geometry import wrap_angle
+from robot.localization.localizer import Localizer
+from robot.maps.plane_map import load_plane_map
 
 pytestmark = pytest.mark.hil
 

@@ -1,0 +1,87 @@
+"""The chassis interface: what the robot core needs from a motor board, whatever carries the bytes.
+
+Backends: ``serial_chassis.SerialChassis`` (the real board over a serial port, or the pty
+emulator) and ``loopback.LoopbackChassis`` (the same protocol bytes to the board model on a
+simulated clock). The app and the bench tools take a ``Chassis``; one contract suite
+(``tests/contract/test_chassis_contract.py``) runs over every backend.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import enum
+from dataclasses import dataclass
+from typing import Dict, Optional, Sequence, Tuple
+
+from firmware_protocol import Status, StatusFlag
+
+
+class LinkState(enum.Enum):
+    CLOSED = "closed"  # not connected yet, or closed
+    CONNECTING = "connecting"  # opening the port and handshaking
+    READY = "ready"  # handshake done and reports arriving: commands are allowed
+    LOST = "lost"  # was ready; reports stopped or the port failed: reconnecting with backoff
+    FAULT = "fault"  # the board answers but cannot be driven (protocol version, ticks per rev)
+
+
+@dataclass(frozen=True)
+class ChassisStatus:
+    t: float  # host monotonic receive time
+    battery_v: float
+    motor_faults: Tuple[bool, bool, bool, bool]
+    watchdog_tripped: bool
+    estop: bool
+    clamped: bool
+    host_silent: bool
+    no_session: bool
+    board_rx_errors: int
+
+    @classmethod
+    def from_message(cls, m: Status, t: float) -> ChassisStatus:
+        f = m.flags
+        return cls(t=t, battery_v=m.battery_mv / 1000.0,
+                   motor_faults=tuple(bool(m.motor_faults >> i & 1) for i in range(4)),
+                   watchdog_tripped=bool(f & StatusFlag.WATCHDOG), estop=bool(f & StatusFlag.ESTOP),
+                   clamped=bool(f & StatusFlag.CLAMPED), host_silent=bool(f & StatusFlag.HOST_SILENT),
+                   no_session=bool(f & StatusFlag.NO_SESSION), board_rx_errors=m.rx_errors)
+
+
+
+class Chassis(abc.ABC):
+    """A Mecanum motor board: wheel speed commands in, wheel odometry and status out.
+
+    Commands are only accepted while ``link_state`` is ``LinkState.READY``; a refused command
+    returns False and is never queued (a stale command must not reach the wheels later).
+    """
+
+    @property
+    @abc.abstractmethod
+    def link_state(self) -> LinkState: ...
+
+    @property
+    @abc.abstractmethod
+    def status(self) -> Optional[ChassisStatus]: ...
+
+    @property
+    @abc.abstractmethod
+    def max_wheel_speed(self) -> float: ...
+
+    @property
+    def stats(self) -> Dict[str, object]:
+        return {}
+
+    @abc.abstractmethod
+    async def connect(self) -> None: ...
+
+    @abc.abstractmethod
+    def send_wheel_speeds(self, wheels: Sequence[float]) -> bool: ...
+
+    @abc.abstractmethod
+    def stop(self) -> bool: ...
+
+    @abc.abstractmethod
+    def odometry_queue(self, maxsize: int = 256) -> asyncio.Queue: ...
+
+    @abc.abstractmethod
+    async def close(self) -> None: ...

@@ -1,0 +1,167 @@
+"""The motor board bench sequence: board info, live odometry, each wheel alone, the watchdog.
+
+Shared by ``robotctl chassis`` and ``robotctl bench``; the caller decides whether the wheels may
+turn (they must be off the ground).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from typing import Dict, List, Optional
+
+from drivers.chassis.base import ChassisStatus
+from drivers.chassis.serial_chassis import SerialChassis
+from robot.base.errors import DriverError
+from robot.base.samples import WheelOdometry
+from robot.config import ChassisConfig
+
+WHEELS = ("FL", "FR", "RL", "RR")
+SPEED_TOLERANCE = 0.05  # a wheel passes within 5 % of its command, measured by its encoder
+WATCHDOG_LIMIT = 0.25  # s from the last command to the board reporting its watchdog tripped
+COMMAND_PERIOD = 0.02  # s: the bench commands at 50 Hz, like the controller
+
+
+async def bench(cfg: ChassisConfig, port: str, duration: float, motion: bool, speed: float, hold: float,
+                out=None) -> Dict[str, object]:
+    """Run the bench sequence; ``out`` gets human-readable lines as they happen."""
+    say = out or (lambda line: None)
+    chassis = SerialChassis(cfg, port=port)
+    odo = chassis.odometry_queue(maxsize=4096)
+    report: Dict[str, object] = {"port": port, "ok": True}
+    await chassis.connect()
+    try:
+        b = chassis.board_info
+        report["board"] = {"firmware": f"{b.fw_major}.{b.fw_minor}.{b.fw_patch}", "protocol_minor": b.minor,
+                           "ticks_per_rev": b.ticks_per_rev, "max_wheel_speed": b.max_speed_mrad_s / 1000.0,
+                           "max_wheel_accel": b.max_accel_mrad_s2 / 1000.0, "watchdog_s": b.watchdog_ms / 1000.0,
+                           "report_hz": 1e6 / b.report_period_us if b.report_period_us else 0.0}
+        say(f"board on {port}: firmware {report['board']['firmware']}, {b.ticks_per_rev} ticks/rev, "
+            f"max {b.max_speed_mrad_s / 1000:.1f} rad/s, watchdog {b.watchdog_ms} ms")
+        report["odometry_hz"] = await _live(chassis, odo, duration, say)
+        if motion:
+            say(f"test motion: each wheel alone at {speed:.2f} rad/s for {hold:.1f} s (robot on blocks)")
+            wheels = []
+            for i in range(4):
+                res = await measure_wheel(chassis, odo, i, speed, hold)
+                wheels.append(res)
+                say(f"  {res['wheel']}: measured {res['measured']:+.3f} rad/s ({res['error_pct']:+.1f} %), "
+                    f"others max {res['others_max']:.3f} rad/s  {'ok' if res['ok'] else 'FAIL'}")
+            report["motion"] = wheels
+            wd = await measure_watchdog(chassis, odo, speed)
+            report["watchdog"] = wd
+            say(f"  watchdog: tripped {wd['trip_s']:.3f} s after the last command (limit {WATCHDOG_LIMIT} s), "
+                f"wheels still after {wd['stopped_s']:.3f} s  {'ok' if wd['ok'] else 'FAIL'}")
+            report["ok"] = all(w["ok"] for w in wheels) and wd["ok"]
+        report["status"] = _status_dict(chassis.status)
+        report["stats"] = {k: v for k, v in chassis.stats.items() if v}
+    finally:
+        await chassis.close()
+    return report
+
+
+async def _live(chassis: SerialChassis, odo: asyncio.Queue, duration: float, say) -> float:
+    samples: List[WheelOdometry] = []
+    t_end = time.monotonic() + duration
+    say("    t[s]  angle FL/FR/RL/RR [rad]              speed FL/FR/RL/RR [rad/s]       battery  flags")
+    t0 = time.monotonic()
+    next_line = t0
+    while time.monotonic() < t_end:
+        await asyncio.sleep(0.05)
+        samples += _drain(odo)
+        if samples and time.monotonic() >= next_line:
+            s = samples[-1]
+            st = chassis.status
+            say(f"  {s.t - t0:6.2f}  " + " ".join(f"{a:+8.3f}" for a in s.angles) + "  "
+                + " ".join(f"{v:+7.2f}" for v in s.speeds)
+                + (f"  {st.battery_v:6.2f} V  {_flags(st)}" if st else "  (no status yet)"))
+            next_line += 0.25
+    hz = (len(samples) - 1) / (samples[-1].t_board - samples[0].t_board) if len(samples) > 2 else 0.0
+    if duration > 0:
+        say(f"  odometry at {hz:.1f} Hz, link {chassis.link_state.value}")
+    return hz
+
+
+def _drain(q: asyncio.Queue) -> List[WheelOdometry]:
+    out = []
+    while not q.empty():
+        out.append(q.get_nowait())
+    return out
+
+
+async def _command_for(chassis: SerialChassis, odo: asyncio.Queue, wheels, seconds: float) -> List[WheelOdometry]:
+    samples: List[WheelOdometry] = []
+    t_end = time.monotonic() + seconds
+    while time.monotonic() < t_end:
+        if not chassis.send_wheel_speeds(wheels):
+            raise DriverError(f"{chassis.port}: command refused, link {chassis.link_state.value}: {chassis.last_error}")
+        await asyncio.sleep(COMMAND_PERIOD)
+        samples += _drain(odo)
+    return samples
+
+
+async def _settle(chassis: SerialChassis, odo: asyncio.Queue, seconds: float) -> None:
+    chassis.stop()
+    await asyncio.sleep(seconds)
+    _drain(odo)
+
+
+def _mean_speeds(samples: List[WheelOdometry]) -> List[float]:
+    """Mean wheel speeds over the second half of the samples: after the ramp and motor lag."""
+    half = samples[len(samples) // 2:]
+    if len(half) < 2:
+        raise DriverError("too few odometry samples to measure wheel speed: is the board reporting?")
+    span = half[-1].t_board - half[0].t_board
+    return [(b - a) / span for a, b in zip(half[0].angles, half[-1].angles)]
+
+
+async def measure_wheel(chassis: SerialChassis, odo: asyncio.Queue, wheel: int, speed: float,
+                        hold: float = 1.0) -> Dict[str, object]:
+    """Turn one wheel alone and measure every wheel by its encoder."""
+    cmd = [0.0, 0.0, 0.0, 0.0]
+    cmd[wheel] = speed
+    _drain(odo)
+    samples = await _command_for(chassis, odo, cmd, hold)
+    await _settle(chassis, odo, 0.3)
+    mean = _mean_speeds(samples)
+    err = (mean[wheel] - speed) / speed
+    others = max(abs(v) for i, v in enumerate(mean) if i != wheel)
+    return {"wheel": WHEELS[wheel], "command": speed, "measured": mean[wheel], "error_pct": 100.0 * err,
+            "others_max": others, "ok": abs(err) <= SPEED_TOLERANCE and others <= SPEED_TOLERANCE * abs(speed)}
+
+
+async def measure_watchdog(chassis: SerialChassis, odo: asyncio.Queue, speed: float) -> Dict[str, object]:
+    """Drive, then stop commanding (no STOP): time until the board reports its watchdog and is still.
+
+    Host-side timing: it includes the status frame's transport delay, so it overstates the board's.
+    """
+    samples = await _command_for(chassis, odo, [speed] * 4, 0.5)
+    t_last = chassis.last_command_time
+    trip: Optional[float] = None
+    still: Optional[float] = None
+    while time.monotonic() - t_last < 2.0 and (trip is None or still is None):
+        await asyncio.sleep(0.005)
+        st = chassis.status
+        if trip is None and st is not None and st.watchdog_tripped and st.t > t_last:
+            trip = st.t - t_last
+        samples += _drain(odo)
+        if trip is not None and still is None and samples and max(abs(v) for v in samples[-1].speeds) < 0.05 * speed:
+            still = samples[-1].t - t_last
+    await _settle(chassis, odo, 0.2)
+    ok = trip is not None and trip <= WATCHDOG_LIMIT and still is not None
+    return {"trip_s": trip if trip is not None else math.inf, "stopped_s": still if still is not None else math.inf,
+            "ok": ok}
+
+
+def _flags(st: ChassisStatus) -> str:
+    names = [n for n, on in (("WATCHDOG", st.watchdog_tripped), ("ESTOP", st.estop), ("CLAMPED", st.clamped),
+                             ("HOST_SILENT", st.host_silent), ("NO_SESSION", st.no_session)) if on]
+    names += [f"FAULT_{w}" for w, f in zip(WHEELS, st.motor_faults) if f]
+    return ",".join(names) or "-"
+
+
+def _status_dict(st: Optional[ChassisStatus]) -> Optional[Dict[str, object]]:
+    if st is None:
+        return None
+    return {"battery_v": st.battery_v, "flags": _flags(st), "board_rx_errors": st.board_rx_errors}

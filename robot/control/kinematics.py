@@ -1,0 +1,101 @@
+"""Mecanum kinematics: body twist <-> wheel speeds, and exact planar integration. Pure numpy.
+
+Conventions (DESIGN.md section 2): robot frame x forward, y left, z up; twist (vx, vy, wz) in
+the robot frame (m/s, m/s, rad/s, wz counter-clockwise seen from above). Wheel order FL, FR,
+RL, RR; a positive wheel speed turns the wheel so that it rolls the robot forward (+x).
+
+Rollers: the roller touching the floor has its axis along (1, -1)/sqrt(2) on FL and RR and
+along (1, 1)/sqrt(2) on FR and RL. Seen from above through the chassis, the top rollers then
+form an "X" (equivalently, the floor contacts form an "O"): the usual mounting. Bench check:
+driving left (vy > 0) turns FL and RR backwards and FR and RL forwards; turning
+counter-clockwise (wz > 0) turns the left wheels backwards and the right wheels forwards.
+
+With L = lx + ly (half wheelbase + half track) and r the wheel radius, rolling without slip:
+
+    w_FL = (vx - vy - L wz) / r        w_FR = (vx + vy + L wz) / r
+    w_RL = (vx + vy - L wz) / r        w_RR = (vx - vy + L wz) / r
+
+Four wheels over-determine three twist components; ``forward`` is the least-squares inverse
+(exact when the wheels agree) and ``slip_residual`` is the part no rigid motion explains.
+"""
+
+from __future__ import annotations
+
+from typing import Sequence, Tuple, Union
+
+import numpy as np
+
+from robot.config import ChassisConfig
+
+ArrayLike = Union[Sequence[float], np.ndarray]
+
+
+class MecanumKinematics:
+    """Wheel speeds (rad/s) <-> robot twist for one chassis geometry."""
+
+    def __init__(self, wheel_radius: float, half_wheelbase: float, half_track: float):
+        if wheel_radius <= 0 or half_wheelbase < 0 or half_track < 0 or half_wheelbase + half_track <= 0:
+            raise ValueError(f"bad Mecanum geometry: r={wheel_radius}, lx={half_wheelbase}, ly={half_track}")
+        self.r = float(wheel_radius)
+        self.L = float(half_wheelbase + half_track)
+        r, L = self.r, self.L
+        # inverse: wheels = J @ twist
+        self.J = np.array([[1.0, -1.0, -L], [1.0, 1.0, L], [1.0, 1.0, -L], [1.0, -1.0, L]]) / r
+        # forward: twist = F @ wheels, F = pinv(J); the columns of J are orthogonal so this is exact
+        self.F = (r / 4.0) * np.array([[1.0, 1.0, 1.0, 1.0], [-1.0, 1.0, 1.0, -1.0],
+                                       [-1.0 / L, 1.0 / L, -1.0 / L, 1.0 / L]])
+        # unit vector orthogonal to J's columns: rigid rolling always has w_FL + w_FR = w_RL + w_RR
+        self.n_slip = np.array([1.0, 1.0, -1.0, -1.0]) / 2.0
+
+    @classmethod
+    def from_config(cls, config: ChassisConfig) -> MecanumKinematics:
+        return cls(config.wheel_radius, config.half_wheelbase, config.half_track)
+
+    def inverse(self, vx: float, vy: float, wz: float) -> np.ndarray:
+        """Wheel speeds (4,) in rad/s, FL, FR, RL, RR, for the twist (vx, vy, wz)."""
+        return self.J @ np.array([vx, vy, wz], dtype=float)
+
+    def forward(self, wheels: ArrayLike) -> np.ndarray:
+        """Twist (vx, vy, wz) of wheel speeds (..., 4) in rad/s: least squares over the 4 wheels."""
+        return np.asarray(wheels, dtype=float) @ self.F.T
+
+    def slip_residual(self, wheels: ArrayLike) -> np.ndarray:
+        """rad/s of wheel speed no rigid motion explains: (w_FL + w_FR - w_RL - w_RR) / 2.
+
+        Zero when all four wheels roll without slip; the odometry can use it to flag slip.
+        """
+        return np.asarray(wheels, dtype=float) @ self.n_slip
+
+    def forward_covariance(self, wheel_variance: Union[float, ArrayLike]) -> np.ndarray:
+        """3x3 covariance of (vx, vy, wz) from wheel speed noise, F Sigma_w F^T.
+
+        ``wheel_variance``: one variance (rad/s)^2 for all wheels, four per-wheel variances, or a
+        full 4x4 covariance. Equal independent noise s2 gives diag(r^2 s2/4, r^2 s2/4, r^2 s2/(4 L^2)).
+        """
+        v = np.asarray(wheel_variance, dtype=float)
+        if v.ndim == 0:
+            cov_w = np.eye(4) * float(v)
+        elif v.shape == (4,):
+            cov_w = np.diag(v)
+        elif v.shape == (4, 4):
+            cov_w = v
+        else:
+            raise ValueError(f"wheel variance must be a scalar, 4 values or 4x4, got shape {v.shape}")
+        return self.F @ cov_w @ self.F.T
+
+    def limit(self, wheels: ArrayLike, max_speed: float) -> Tuple[np.ndarray, float]:
+        """Scale all four wheels by one factor so none exceeds max_speed: keeps the direction of motion.
+
+        Returns (wheels, scale) with scale in (0, 1]. Clamping wheels one by one would instead bend
+        the path of a Mecanum robot.
+        """
+        w = np.asarray(wheels, dtype=float)
+        peak = float(np.max(np.abs(w))) if w.size else 0.0
+        if peak <= max_speed or peak == 0.0:
+            return w.copy(), 1.0
+        scale = max_speed / peak
+        return w * scale, scale
+
+
+def make_kinematics(config: ChassisConfig) -> MecanumKinematics:
+    return MecanumKinematics.from_config(config)

@@ -1,0 +1,269 @@
+"""Trajectory controller: drive a holonomic (Mecanum) base through a path file's waypoints.
+
+Model and conventions:
+
+- Input each control tick (``ControlConfig.rate``, 50 Hz): the fused pose (x, y, phi) in G and
+  a ``speed_scale`` in [0, 1] from the health supervisor. Output: a body twist (vx, vy, wz) in
+  the ROBOT frame (x forward, y left, wz counter-clockwise), SI units.
+- Law, per waypoint (stop-and-go, every waypoint is approached to rest): the segment runs from
+  the previous waypoint (the pose at start for the first) to the target. Along the segment the
+  speed follows a feedforward profile ``min(cruise, sqrt(2 a_b d), k_p d)`` (cruise speed,
+  braking distance, then a proportional finish), across it a proportional pull back onto the
+  line. Heading: the waypoint's heading, or the last one commanded, with the same profile on
+  the wrapped heading error. The G-frame velocity is rotated into R.
+- Limits: the target twist goes through a rate-limiter chain per axis (vx, vy, wz), like
+  ros2_controllers' SpeedLimiter and Nav2's velocity_smoother: speed, acceleration and jerk
+  are bounded, and the acceleration is ramped down ahead of time (discrete braking profile) so
+  the speed never overshoots its target. A jump of the pose estimate only changes the target,
+  so it can never become a velocity spike; ``speed_scale`` scales the target, so slowing down
+  also respects the limits. The translation target's norm is at most ``max_speed``.
+- Arrival: within the waypoint's position tolerance and (if it has a heading) its heading
+  tolerance and, if ``require_settled``, with the command below the settle speeds. Then the
+  robot dwells (holding the target) for the waypoint's ``dwell`` and moves on.
+- States: ``following``, ``arrived`` (dwelling), ``paused``, ``done``, ``aborted``, ``error``.
+  ``pause()`` brakes to zero within the limits and holds; ``resume()`` continues (also clears
+  ``error``); ``abort()`` brakes within the limits and ends. A non-finite pose gives a zero
+  command at once and latches ``error`` until ``resume()``: no command is ever NaN.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence, Tuple
+
+from robot.base.geometry import wrap_angle
+from robot.config import ControlConfig
+from robot.control.path_file import PathPlan, Waypoint
+
+FOLLOWING = "following"
+ARRIVED = "arrived"
+PAUSED = "paused"
+DONE = "done"
+ABORTED = "aborted"
+ERROR = "error"
+
+
+
+
+@dataclass(frozen=True)
+class Command:
+    vx: float  # m/s, robot frame
+    vy: float
+    wz: float  # rad/s
+    t_issued: float  # host monotonic time of the tick that produced it
+    state: str
+    waypoint: int  # index of the current target (len(waypoints) when done)
+    reason: str = ""
+
+
+class AxisLimiter:
+    """Speed, acceleration and jerk limits on one axis, with no overshoot of a steady target.
+
+    Each tick picks the largest acceleration from which the jerk-limited braking staircase
+    (a - J dt, a - 2 J dt, ... down to 0) still ends on the target, then moves the acceleration
+    towards it by at most ``max_jerk * dt``. The speed therefore settles exactly on the target,
+    and a target that drops (a slow-down, a pose jump) is met as fast as the limits allow.
+    """
+
+    def __init__(self, max_speed: float, max_accel: float, max_jerk: float):
+        self.max_speed, self.max_accel, self.max_jerk = max_speed, max_accel, max_jerk
+        self.v = 0.0
+        self.a = 0.0
+
+    def reset(self) -> None:
+        self.v = self.a = 0.0
+
+    def step(self, target: float, dt: float) -> float:
+        h = self.max_jerk * dt  # largest change of acceleration in one tick
+        target = min(max(target, -self.max_speed), self.max_speed)
+        e = target - self.v
+        if abs(e) <= 1e-12 and abs(self.a) <= h:
+            self.v, self.a = target, 0.0  # landed: stop the rounding-level limit cycle
+            return self.v
+        E = abs(e)
+        # Accelerating at a then braking by h per tick covers dt^2 J n(n+1)/2 + (n+1) dt r with
+        # a = n h + r: take the largest n that fits and solve for a.
+        n = math.floor((-1.0 + math.sqrt(1.0 + 8.0 * E / (h * dt))) / 2.0)
+        reachable = (E / dt + h * n * (n + 1) / 2.0) / (n + 1)
+        a_wanted = math.copysign(min(self.max_accel, reachable), e)
+        self.a += min(max(a_wanted - self.a, -h), h)
+        # The clamp only ever trims rounding: the staircase already keeps |v| <= max_speed.
+        self.v = min(max(self.v + self.a * dt, -self.max_speed), self.max_speed)
+        return self.v
+
+
+def _clip_norm(x: float, y: float, limit: float) -> Tuple[float, float]:
+    n = math.hypot(x, y)
+    if n <= limit or n == 0.0:
+        return x, y
+    return x * limit / n, y * limit / n
+
+
+def _profile(error: float, cruise: float, brake_accel: float, kp: float) -> float:
+    """Signed speed towards zero error: cruise, then braking distance, then proportional."""
+    d = abs(error)
+    return math.copysign(min(cruise, math.sqrt(2.0 * brake_accel * d), kp * d), error)
+
+
+class TrajectoryController:
+    """Follows a :class:`PathPlan`; call :meth:`step` once per control tick."""
+
+    def __init__(self, plan: PathPlan, config: Optional[ControlConfig] = None):
+        if not plan.waypoints:
+            raise ValueError("a path needs at least one waypoint")
+        self.plan = plan
+        self.config = cfg = config or ControlConfig()
+        self._lim = (AxisLimiter(cfg.max_speed, cfg.max_accel, cfg.max_jerk),
+                     AxisLimiter(cfg.max_speed, cfg.max_accel, cfg.max_jerk),
+                     AxisLimiter(cfg.max_yaw_rate, cfg.max_yaw_accel, cfg.max_yaw_jerk))
+        self._index = 0
+        self._state = FOLLOWING
+        self._paused = False
+        self._reason = ""
+        self._t_last: Optional[float] = None
+        self._seg_start: Optional[Tuple[float, float]] = None
+        self._heading_goal: Optional[float] = None
+        self._dwell_left = 0.0
+        self._last: Optional[Command] = None
+
+    # -- operator actions ---------------------------------------------------------------------
+
+    def pause(self) -> None:
+        if self._state in (FOLLOWING, ARRIVED):
+            self._paused = True
+
+    def resume(self) -> None:
+        self._paused = False
+        if self._state == ERROR:
+            self._state = FOLLOWING if self._index < len(self.plan.waypoints) else DONE
+            self._reason = ""
+
+    def abort(self, reason: str = "aborted by operator") -> None:
+        if self._state not in (DONE, ABORTED):
+            self._state = ABORTED
+            self._reason = reason
+
+    @property
+    def state(self) -> str:
+        return PAUSED if self._paused and self._state in (FOLLOWING, ARRIVED) else self._state
+
+    @property
+    def waypoint_index(self) -> int:
+        return self._index
+
+    @property
+    def finished(self) -> bool:
+        """Done or aborted, and the command has come to rest."""
+        return self._state in (DONE, ABORTED) and all(lim.v == 0.0 and lim.a == 0.0 for lim in self._lim)
+
+    # -- the control tick -----------------------------------------------------------------------
+
+    def step(self, t: float, pose: Sequence[float], speed_scale: float = 1.0) -> Command:
+        cfg = self.config
+        if self._t_last is not None and not t > self._t_last and self._last is not None:
+            return self._last  # same tick again: nothing new to integrate
+        dt = 1.0 / cfg.rate if self._t_last is None else min(t - self._t_last, cfg.max_dt)
+        self._t_last = t
+        try:
+            x, y, phi = (float(v) for v in pose)
+        except (TypeError, ValueError):
+            x = y = phi = math.nan
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(phi)):
+            for lim in self._lim:
+                lim.reset()
+            self._state, self._reason = ERROR, "pose is not finite: stopped"
+            return self._emit(Command(0.0, 0.0, 0.0, t, ERROR, self._index, self._reason))
+        if self._state == ERROR:
+            return self._emit(Command(0.0, 0.0, 0.0, t, ERROR, self._index, self._reason))
+        scale = speed_scale if math.isfinite(speed_scale) else 0.0
+        scale = min(max(scale, 0.0), 1.0)
+
+        target = (0.0, 0.0, 0.0)
+        if self._state in (FOLLOWING, ARRIVED) and not self._paused:
+            self._advance(t, dt, x, y, phi)
+        if self._state in (FOLLOWING, ARRIVED):
+            target = self._target_twist(x, y, phi, scale)
+            if self._paused:
+                target = (0.0, 0.0, 0.0)
+        vx = self._lim[0].step(target[0], dt)
+        vy = self._lim[1].step(target[1], dt)
+        wz = self._lim[2].step(target[2], dt)
+        return self._emit(Command(vx, vy, wz, t, self.state, self._index, self._reason))
+
+    def _emit(self, cmd: Command) -> Command:
+        self._last = cmd
+        return cmd
+
+    def _waypoint(self) -> Waypoint:
+        return self.plan.waypoints[self._index]
+
+    def _activate(self, x: float, y: float, phi: float) -> None:
+        if self._index == 0 or self._seg_start is None:
+            self._seg_start = (x, y)
+        else:
+            prev = self.plan.waypoints[self._index - 1]
+            self._seg_start = (prev.x, prev.y)
+        if self._heading_goal is None:
+            self._heading_goal = phi
+        wp = self._waypoint()
+        if wp.heading is not None:
+            self._heading_goal = wp.heading
+
+    def _advance(self, t: float, dt: float, x: float, y: float, phi: float) -> None:
+        """Waypoint bookkeeping: arrival, dwell, next waypoint, done."""
+        if self._seg_start is None:
+            self._activate(x, y, phi)
+        wp = self._waypoint()
+        if self._state == FOLLOWING and self._arrived(wp, x, y, phi):
+            self._state = ARRIVED
+            self._dwell_left = wp.dwell
+        if self._state == ARRIVED:
+            self._dwell_left -= dt
+            if self._dwell_left <= 0.0:
+                self._index += 1
+                if self._index >= len(self.plan.waypoints):
+                    self._state = DONE
+                    self._reason = "path complete"
+                else:
+                    self._state = FOLLOWING
+                    self._activate(x, y, phi)
+
+    def _arrived(self, wp: Waypoint, x: float, y: float, phi: float) -> bool:
+        cfg = self.config
+        if math.hypot(wp.x - x, wp.y - y) > wp.tolerance:
+            return False
+        if wp.heading is not None and abs(wrap_angle(wp.heading - phi)) > wp.heading_tolerance:
+            return False
+        if cfg.require_settled:
+            lx, ly, lw = self._lim
+            if math.hypot(lx.v, ly.v) > cfg.settle_speed or abs(lw.v) > cfg.settle_yaw_rate:
+                return False
+        return True
+
+    def _target_twist(self, x: float, y: float, phi: float, scale: float) -> Tuple[float, float, float]:
+        cfg = self.config
+        wp = self._waypoint()
+        cruise = min(wp.speed, cfg.max_speed) * scale
+        brake = cfg.brake_fraction * cfg.max_accel
+        ex, ey = wp.x - x, wp.y - y
+        sx, sy = self._seg_start
+        lx, ly = wp.x - sx, wp.y - sy
+        length = math.hypot(lx, ly)
+        if length > 1e-6:
+            tx, ty = lx / length, ly / length
+            along = ex * tx + ey * ty
+            cx, cy = ex - along * tx, ey - along * ty  # from the robot to the line
+            v_along = _profile(along, cruise, brake, cfg.kp_position)
+            vcx, vcy = _clip_norm(cfg.kp_cross_track * cx, cfg.kp_cross_track * cy, cruise)
+            gx, gy = v_along * tx + vcx, v_along * ty + vcy
+        else:
+            d = math.hypot(ex, ey)
+            speed = abs(_profile(d, cruise, brake, cfg.kp_position))
+            gx, gy = (ex / d * speed, ey / d * speed) if d > 0.0 else (0.0, 0.0)
+        gx, gy = _clip_norm(gx, gy, cruise)
+        c, s = math.cos(phi), math.sin(phi)
+        vx, vy = c * gx + s * gy, -s * gx + c * gy  # G -> R
+        e_phi = wrap_angle(self._heading_goal - phi)
+        wz = _profile(e_phi, cfg.max_yaw_rate * scale, cfg.brake_fraction * cfg.max_yaw_accel, cfg.kp_heading)
+        return vx, vy, wz

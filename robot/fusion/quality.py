@@ -1,0 +1,141 @@
+"""Localization quality: ``localized``, ``degraded`` or ``lost``, always with a reason.
+
+Inputs are explicit (no clock inside): the time of each plane update and whether the gate
+accepted it (``note_update``), pose resets (``note_fix``), and at evaluation the filter's 3x3
+covariance of (x, y, phi). Rules, checked in this order (defaults in :class:`QualityConfig`):
+
+- ``lost`` when the position std (the larger axis of the x/y covariance ellipse) exceeds
+  ``lost_pos_std`` (0.10 m), the heading std exceeds ``lost_heading_std_deg`` (5 deg), no plane
+  was accepted for ``lost_after`` (10 s), or the gate refused at least ``lost_rejection_ratio``
+  (90 %) of the recent planes (the map no longer agrees with the pose: kidnapped or wrong map).
+- ``degraded`` when the last accepted plane is older than ``localized_within`` (1 s, odometry
+  only), the position std exceeds ``localized_pos_std`` (0.02 m), the heading std exceeds
+  ``localized_heading_std_deg`` (1 deg), or the gate refused at least ``degraded_rejection_ratio``
+  (50 %) of the recent planes.
+- ``localized`` otherwise.
+
+The position reason names the poorly known direction, so a corridor (parallel walls only) says
+which way the position is unobservable instead of inventing it (DESIGN.md section 4). To stop
+the state flickering at a threshold, a worse state is left only once the numbers are back
+below ``hysteresis`` (80 %) of the threshold that put it there. A pose reset (``note_fix``)
+counts as an accepted update for the age rules, like Nav2 AMCL's initial pose.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+from typing import Deque, List, Optional, Tuple
+
+import numpy as np
+
+from robot.config import QualityConfig
+
+LOCALIZED = "localized"
+DEGRADED = "degraded"
+LOST = "lost"
+_RANK = {LOCALIZED: 0, DEGRADED: 1, LOST: 2}
+
+
+
+
+@dataclass(frozen=True)
+class QualityReport:
+    state: str  # localized | degraded | lost
+    reason: str  # "" when localized
+    pos_std: float  # m, the larger axis of the position covariance
+    heading_std: float  # rad
+    since_accepted: float  # s since the last accepted plane or pose reset (inf: never)
+    rejection_ratio: float  # over the window; nan when too few decisions
+
+    def as_dict(self) -> dict:
+        return {"state": self.state, "reason": self.reason, "pos_std": self.pos_std,
+                "heading_std_deg": math.degrees(self.heading_std), "since_accepted": self.since_accepted,
+                "rejection_ratio": self.rejection_ratio}
+
+
+def position_std_axis(P: np.ndarray) -> Tuple[float, float]:
+    """(std along the worst direction, that direction's angle in G) of the x/y block of P."""
+    w, v = np.linalg.eigh(0.5 * (P[:2, :2] + P[:2, :2].T))
+    axis = v[:, 1]
+    return math.sqrt(max(float(w[1]), 0.0)), math.atan2(float(axis[1]), float(axis[0]))
+
+
+class QualityMonitor:
+    """Turns filter events and covariance into a quality state with a reason."""
+
+    def __init__(self, config: Optional[QualityConfig] = None):
+        self.config = config or QualityConfig()
+        self._last_accepted: Optional[float] = None
+        self._decisions: Deque[Tuple[float, bool]] = collections.deque()
+        self._state = LOST
+        self._reason = "no pose yet"
+        self._fresh = True
+
+    @property
+    def state(self) -> str:
+        return self._state
+
+    def note_fix(self, t: float) -> None:
+        """A pose was set (initial pose, operator fix): it counts as fresh localization."""
+        self._last_accepted = t if self._last_accepted is None else max(self._last_accepted, t)
+        self._decisions.clear()
+        self._state = DEGRADED  # until the next evaluation judges the numbers
+        self._reason = "pose set"
+        self._fresh = True  # no hysteresis from before the reset
+
+    def note_update(self, t: float, accepted: bool) -> None:
+        """A plane measurement captured at t went through the gate (accepted or not)."""
+        self._decisions.append((t, bool(accepted)))
+        if accepted and (self._last_accepted is None or t > self._last_accepted):
+            self._last_accepted = t
+
+    def evaluate(self, t: float, P: np.ndarray) -> QualityReport:
+        cfg = self.config
+        while self._decisions and self._decisions[0][0] < t - cfg.rejection_window:
+            self._decisions.popleft()
+        n = len(self._decisions)
+        rejected = sum(1 for _, ok in self._decisions if not ok)
+        ratio = rejected / n if n >= cfg.min_decisions else math.nan
+        age = math.inf if self._last_accepted is None else max(0.0, t - self._last_accepted)
+        P = np.asarray(P, dtype=float)
+        if P.shape != (3, 3) or not np.isfinite(P).all():
+            return self._set(LOST, "covariance is not finite", math.inf, math.inf, age, ratio)
+        pos_std, axis = position_std_axis(P)
+        heading_std = math.sqrt(max(float(P[2, 2]), 0.0))
+
+        # Thresholds are tightened by the hysteresis factor for the states we are trying to leave.
+        def scale(level: str) -> float:
+            return cfg.hysteresis if not self._fresh and _RANK[self._state] >= _RANK[level] else 1.0
+
+        lost_reasons = self._reasons(
+            cfg.lost_after * scale(LOST), cfg.lost_pos_std * scale(LOST), cfg.lost_heading_std_deg * scale(LOST),
+            cfg.lost_rejection_ratio * scale(LOST), age, pos_std, axis, heading_std, ratio, rejected, n)
+        if lost_reasons:
+            return self._set(LOST, "; ".join(lost_reasons), pos_std, heading_std, age, ratio)
+        deg_reasons = self._reasons(
+            cfg.localized_within * scale(DEGRADED), cfg.localized_pos_std * scale(DEGRADED),
+            cfg.localized_heading_std_deg * scale(DEGRADED), cfg.degraded_rejection_ratio * scale(DEGRADED),
+            age, pos_std, axis, heading_std, ratio, rejected, n)
+        if deg_reasons:
+            return self._set(DEGRADED, "; ".join(deg_reasons), pos_std, heading_std, age, ratio)
+        return self._set(LOCALIZED, "", pos_std, heading_std, age, ratio)
+
+    @staticmethod
+    def _reasons(max_age, max_pos, max_heading_deg, max_ratio, age, pos_std, axis, heading_std, ratio,
+                 rejected, n) -> List[str]:
+        out = []
+        if age > max_age:
+            out.append("no plane accepted yet" if math.isinf(age) else f"odometry only for {age:.1f} s")
+        if pos_std > max_pos:
+            out.append(f"position std {pos_std * 1000:.0f} mm along {math.degrees(axis) % 180:.0f} deg")
+        if math.degrees(heading_std) > max_heading_deg:
+            out.append(f"heading std {math.degrees(heading_std):.1f} deg")
+        if not math.isnan(ratio) and ratio >= max_ratio:
+            out.append(f"gate refused {rejected} of {n} recent planes")
+        return out
+
+    def _set(self, state, reason, pos_std, heading_std, age, ratio) -> QualityReport:
+        self._state, self._reason, self._fresh = state, reason, False
+        return QualityReport(state, reason, pos_std, heading_std, age, ratio)

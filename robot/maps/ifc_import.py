@@ -1,0 +1,479 @@
+"""Plane maps from IFC building models: every use of ifcopenshell lives here.
+
+The import runs on a workstation (optional extra ``bim``); the robot only loads the YAML it writes.
+For one storey it takes the walls and columns that stand on that storey or rise into it from below,
+meshes them with openings cut (ifcopenshell.geom, world coordinates in metres), moves them into the
+storey's frame (floor at z = 0) and hands the meshes to :mod:`robot.maps.wall_faces`, which picks the
+faces a depth camera can use. Failures a user can cause (missing extra, unreadable file, unknown
+schema or storey) raise ConfigError with one line naming the problem.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import re
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from robot.base.errors import ConfigError
+from robot.base.geometry import invert_transform
+from robot.maps.plane_map import MapPlane, PlaneMap, make_plane
+
+log = logging.getLogger(__name__)
+
+BIM_HINT = "IFC import needs the optional extra: pip install .[bim]"
+DEFAULT_TYPES = ("IfcWall", "IfcColumn")  # IfcWall includes IfcWallStandardCase and other subtypes
+OCCLUDER_TYPES = ("IfcSlab", "IfcCovering", "IfcBeam")  # flat elements that hide wall parts
+STOREY_TOL = 0.05  # m: storeys closer than this in elevation count as the same level
+ENCLOSED_DEPTH = 0.6  # m: a face that sees the back of another face this close faces a closed pocket
+
+
+def _require_ifcopenshell():
+    try:
+        import ifcopenshell
+        import ifcopenshell.geom
+        import ifcopenshell.util.element
+        import ifcopenshell.util.placement
+        import ifcopenshell.util.unit
+        import shapely  # noqa: F401  (robot.maps.wall_faces needs it; it comes with ifcopenshell)
+    except ImportError:
+        raise ConfigError(BIM_HINT) from None
+    return ifcopenshell
+
+
+@dataclass(frozen=True)
+class StoreyInfo:
+    name: str
+    guid: str
+    elevation: float  # m, world z of the storey's placement
+    height: Optional[float]  # m up to the next storey; None for the top one
+    elements: int  # walls and columns contained in it
+
+
+@dataclass(frozen=True)
+class ImportOptions:
+    min_width: float = 0.5  # m: narrower faces are wall ends or reveals
+    min_area: float = 0.5  # m^2
+    openings: bool = True  # cut doors and windows out of the walls (a camera sees the holes)
+    types: Tuple[str, ...] = DEFAULT_TYPES
+    threads: int = 2
+    clip_to_storey: bool = True  # cut faces at the next storey's floor (the ceiling hides the rest)
+
+
+@dataclass
+class ImportResult:
+    plane_map: PlaneMap
+    storey: StoreyInfo
+    T_storey_world: np.ndarray
+    window: Tuple[float, float]  # z range kept, storey frame
+    report: Dict[str, Any]
+    warnings: List[str] = field(default_factory=list)
+
+    def header(self, note: str = "") -> str:
+        """The comment block written at the top of the map file."""
+        r = self.report
+        c = r["counts"]
+        lines = [
+            f"Imported by `robotctl map import-ifc` from {r['model']['file']} (sha256 {r['model']['sha256'][:16]}...),",
+            f"schema {r['model']['schema']}, length unit {r['model']['length_unit_m']:g} m, "
+            f"authoring tool: {(r['model']['application'] or 'unknown').rstrip('.')}.",
+            f"Storey '{self.storey.name}' ({self.storey.guid}), elevation {self.storey.elevation:.3f} m: "
+            f"{r['transform']['description']}.",
+            f"Faces clipped to z in [{self.window[0]:.3f}, {self.window[1]:.3f}] m "
+            f"(camera band {r['band'][0]:.3f}..{r['band'][1]:.3f} m"
+            + (f", storey height {self.storey.height:.3f} m)." if self.storey.height else ")."),
+            f"Kept vertical faces at least {r['options']['min_width']} m wide and {r['options']['min_area']} m^2; "
+            f"openings {'cut' if r['options']['openings'] else 'filled'}.",
+            f"{c['elements']} elements ({c['no_body']} without a body), {c['vertical_faces']} vertical faces, "
+            f"dropped: {c['hidden']} hidden, {c['outside_window']} outside the window, "
+            f"{c['narrow']} narrow, {c['small']} small, {c['enclosed']} facing a closed pocket; {c['merged']} merged; "
+            f"{c['planes']} planes, {c['polygons']} polygons.",
+        ]
+        if note:
+            lines.extend(note.splitlines())
+        return "\n".join(lines)
+
+
+def _schema_in_header(path: Path) -> str:
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65536).decode("latin-1")
+    except OSError:
+        return ""
+    m = re.search(r"FILE_SCHEMA\s*\(\s*\(\s*'([^']*)'", head, re.IGNORECASE)
+    return m.group(1) if m else ""
+
+
+def open_model(path):
+    """Open an IFC file; ConfigError for a missing extra, a missing file or an unreadable schema."""
+    ifcopenshell = _require_ifcopenshell()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"{p}: file not found")
+    try:
+        model = ifcopenshell.open(str(p))
+    except Exception as e:  # ifcopenshell raises SchemaError, Error or RuntimeError by version
+        schema = _schema_in_header(p)
+        if isinstance(e, getattr(ifcopenshell, "SchemaError", ())) or "schema" in str(e).lower():
+            raise ConfigError(
+                f"{p}: IFC schema {schema or '?'} is not supported by ifcopenshell {ifcopenshell.version} "
+                f"(it reads {', '.join(_supported_schemas())})"
+            ) from None
+        raise ConfigError(f"{p}: not a readable IFC file: {e}") from None
+    return model
+
+
+def _supported_schemas() -> List[str]:
+    try:
+        from ifcopenshell import ifcopenshell_wrapper
+
+        return [s for s in ifcopenshell_wrapper.schema_names() if s.upper().startswith("IFC")]
+    except Exception:
+        return ["IFC2X3", "IFC4", "IFC4X3"]
+
+
+def _unit_scale(model) -> float:
+    import ifcopenshell.util.unit
+
+    return float(ifcopenshell.util.unit.calculate_unit_scale(model))
+
+
+def _placement(product, scale: float) -> np.ndarray:
+    """World transform of a product's placement, translation in metres."""
+    import ifcopenshell.util.placement
+
+    if getattr(product, "ObjectPlacement", None) is None:
+        return np.eye(4)
+    M = np.array(ifcopenshell.util.placement.get_local_placement(product.ObjectPlacement), dtype=float)
+    M[:3, 3] *= scale
+    return M
+
+
+def _storey_of(element):
+    import ifcopenshell.util.element as ue
+
+    storey = ue.get_container(element, ifc_class="IfcBuildingStorey")
+    if storey is None:
+        parent = ue.get_aggregate(element)  # a part of an assembly inherits the assembly's storey
+        if parent is not None:
+            storey = ue.get_container(parent, ifc_class="IfcBuildingStorey")
+    return storey
+
+
+def _elements(model, types: Sequence[str]) -> List[Any]:
+    out, seen = [], set()
+    for t in types:
+        try:
+            items = model.by_type(t)
+        except RuntimeError:  # a class this schema lacks (IfcWallStandardCase in IFC4X3)
+            continue
+        for e in items:
+            if e.id() not in seen:
+                seen.add(e.id())
+                out.append(e)
+    return out
+
+
+def _storey_label(s) -> str:
+    return s.Name if s.Name else f"<unnamed {s.GlobalId}>"
+
+
+def list_storeys(model, types: Sequence[str] = DEFAULT_TYPES) -> List[StoreyInfo]:
+    """The model's storeys, lowest first, with elevations in metres."""
+    scale = _unit_scale(model)
+    raw = []
+    for s in model.by_type("IfcBuildingStorey"):
+        if s.ObjectPlacement is not None:
+            elev = float(_placement(s, scale)[2, 3])
+        elif s.Elevation is not None:
+            elev = float(s.Elevation) * scale
+        else:
+            elev = 0.0
+        raw.append((elev, s))
+    raw.sort(key=lambda x: x[0])
+    counts: Dict[int, int] = {}
+    for e in _elements(model, types):
+        st = _storey_of(e)
+        if st is not None:
+            counts[st.id()] = counts.get(st.id(), 0) + 1
+    out = []
+    for elev, s in raw:
+        above = [e for e, _ in raw if e > elev + STOREY_TOL]
+        out.append(StoreyInfo(_storey_label(s), s.GlobalId, elev, (min(above) - elev) if above else None,
+                              counts.get(s.id(), 0)))
+    return out
+
+
+def _find_storey(model, wanted: str, where: str):
+    storeys = model.by_type("IfcBuildingStorey")
+    hits = [s for s in storeys if wanted in (s.GlobalId, _storey_label(s))]
+    if not hits:
+        hits = [s for s in storeys if (s.Name or "").strip().lower() == wanted.strip().lower()]
+    if len(hits) == 1:
+        return hits[0]
+    names = ", ".join(repr(_storey_label(s)) for s in storeys) or "none"
+    if not hits:
+        raise ConfigError(f"{where}: no storey named {wanted!r} (storeys: {names})")
+    raise ConfigError(f"{where}: {len(hits)} storeys are named {wanted!r}: give its GlobalId instead "
+                      f"({', '.join(s.GlobalId for s in hits)})")
+
+
+def _geom_settings(openings: bool):
+    import ifcopenshell.geom
+
+    s = ifcopenshell.geom.settings()
+    s.set("use-world-coords", True)  # output in metres whatever the file's unit
+    if not openings:
+        s.set("disable-opening-subtractions", True)
+    return s
+
+
+def _meshes(model, elements, openings: bool, threads: int) -> Dict[int, Tuple[np.ndarray, np.ndarray]]:
+    """Triangle meshes by element id, world coordinates in metres; elements without a body are absent."""
+    import ifcopenshell.geom
+
+    if not elements:
+        return {}
+    it = ifcopenshell.geom.iterator(_geom_settings(openings), model, max(1, threads), include=elements)
+    out: Dict[int, Tuple[np.ndarray, np.ndarray]] = {}
+    if not it.initialize():
+        return out
+    while True:
+        shape = it.get()
+        g = shape.geometry
+        # Copy now: the iterator may reuse these buffers once it moves on (seen with 0.8.5).
+        if hasattr(g, "verts_buffer"):
+            v = np.frombuffer(g.verts_buffer, "d").reshape(-1, 3).copy()
+            f = np.frombuffer(g.faces_buffer, "i").reshape(-1, 3).copy()
+        else:  # ifcopenshell 0.7
+            v = np.asarray(g.verts, dtype=float).reshape(-1, 3).copy()
+            f = np.asarray(g.faces, dtype=int).reshape(-1, 3).copy()
+        # Keep only the vertices the triangles use (0.8.5 returns unused ones, e.g. at the origin).
+        used, f = np.unique(f, return_inverse=True)
+        out[int(shape.id)] = (v[used], f.reshape(-1, 3))
+        if not it.next():
+            break
+    return out
+
+
+def _application(model) -> str:
+    """The authoring tool, from IfcApplication (the STEP header's fields are used inconsistently)."""
+    apps = []
+    for a in model.by_type("IfcApplication"):
+        name = (a.ApplicationFullName or "").strip()
+        version = (a.Version or "").strip()
+        label = name if not version or version in name else f"{name} {version}"
+        if label and label not in apps:
+            apps.append(label)
+    if apps:
+        return ", ".join(apps)
+    try:
+        return str(model.header.file_name.originating_system or "")
+    except Exception:  # a header ifcopenshell could not parse
+        return ""
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _describe_transform(T: np.ndarray) -> str:
+    yaw = math.degrees(math.atan2(T[1, 0], T[0, 0]))
+    t = T[:3, 3]
+    if np.allclose(T[:3, :3], np.eye(3), atol=1e-9):
+        if np.allclose(t, 0.0, atol=1e-9):
+            return "map = world (the storey's placement is the world origin)"
+        if np.allclose(t[:2], 0.0, atol=1e-9):
+            return f"map = world shifted by z {t[2]:+.3f} m (storey floor at z = 0)"
+        return f"map = world translated by ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}) m"
+    return f"map = world rotated by {yaw:+.2f} deg about z, then translated by ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}) m"
+
+
+def _plane_id(k: int) -> str:
+    return f"w{k:03d}"
+
+
+def _drop_enclosed(planes: List[MapPlane], depth: float) -> Tuple[List[MapPlane], int]:
+    """Drop polygons that look at the back of another face within ``depth``; renumber the planes.
+
+    Face winding comes from closed solids, so such a polygon is not flipped. It faces a pocket
+    inside the construction (a shaft between walls), whose closing face was too narrow to keep.
+    No camera can see into the pocket, and the map check would rightly reject the polygon.
+    """
+    from robot.maps.tools import back_face_hits
+
+    dropped = 0
+    for _ in range(3):
+        hits = back_face_hits(PlaneMap(planes), depth) if planes else []
+        if not hits:
+            break
+        bad = {(h.plane, h.polygon) for h in hits}
+        dropped += len(bad)
+        kept = []
+        for i, mp in enumerate(planes):
+            polys = [poly for k, poly in enumerate(mp.polygons) if (i, k) not in bad]
+            if polys:
+                kept.append(make_plane(mp.id, polys, mp.source))
+        planes = kept
+    planes = [make_plane(_plane_id(k), mp.polygons, mp.source) for k, mp in enumerate(planes)]
+    return planes, dropped
+
+
+def _wall_elements(model, target, info: StoreyInfo, scale: float, options: ImportOptions):
+    """Walls of the storey, and those of the storeys below that rise into it; also the number of
+    those below that have no body. A quick mesh without openings tells how high they reach."""
+    here, below = [], []
+    for e in _elements(model, options.types):
+        st = _storey_of(e)
+        if st is None or st.id() == target.id():
+            here.append(e)
+        elif float(_placement(st, scale)[2, 3]) <= info.elevation + STOREY_TOL:
+            below.append(e)
+    rough = _meshes(model, below, openings=False, threads=options.threads)
+    rising = [e for e in below if e.id() in rough and rough[e.id()][0][:, 2].max() > info.elevation + STOREY_TOL]
+    return here + rising, sum(1 for e in below if e.id() not in rough)
+
+
+def _occluder_elements(model, target, storeys: List[StoreyInfo], info: StoreyInfo) -> List[Any]:
+    """Flat elements of this storey and the next one up (whose floor slab is this storey's ceiling)."""
+    next_up = [s for s in storeys if s.elevation > info.elevation + STOREY_TOL][:1]
+    wanted = {target.GlobalId} | {s.guid for s in next_up}
+    out = []
+    for e in _elements(model, OCCLUDER_TYPES):
+        st = _storey_of(e)
+        if st is None or st.GlobalId in wanted:
+            out.append(e)
+    return out
+
+
+def _map_planes(planes, meshes) -> Tuple[List[MapPlane], int]:
+    """MapPlanes with their IFC source, in a stable order (by first contributing element in file
+    order, then direction and offset); also how many failed validation."""
+    planes = sorted(planes, key=lambda wp: (wp.elements[0], round(float(np.arctan2(wp.normal[1], wp.normal[0])), 3),
+                                            wp.d))
+    out, invalid = [], 0
+    for wp in planes:
+        src = [meshes[i] for i in wp.elements]
+        source = {"ifc_guid": [m.guid for m in src], "ifc_type": sorted({m.ifc_type for m in src}),
+                  "name": [m.name for m in src], "storey": src[0].storey}
+        try:
+            out.append(make_plane(_plane_id(len(out)), wp.polygons, source))
+        except ValueError as e:  # a face the cutting mangled: report it, keep the rest of the map
+            log.warning("dropped a face of %s: %s", source["ifc_guid"][0], e)
+            invalid += 1
+    return out, invalid
+
+
+def import_storey(path, storey: str, band: Tuple[float, float], eye_z: float = 0.5,
+                  options: ImportOptions = ImportOptions()) -> ImportResult:
+    """Import the usable wall planes of one storey, in the storey's frame.
+
+    ``band`` is the (z_lo, z_hi) the cameras see above the floor and ``eye_z`` their height (see
+    :func:`robot.maps.tools.camera_height_band`); faces are clipped to the band and to the storey
+    height, and cut where a slab, ceiling or beam meets them (above it when it is above the cameras).
+    """
+    t0 = time.perf_counter()
+    model = open_model(path)
+    from robot.maps import wall_faces  # needs shapely, which comes with the bim extra
+
+    p = Path(path)
+    t_open = time.perf_counter()
+    scale = _unit_scale(model)
+    target = _find_storey(model, storey, str(p))
+    storeys = list_storeys(model, options.types)
+    info = next(s for s in storeys if s.guid == target.GlobalId)
+    T_storey_world = invert_transform(_placement(target, scale))
+
+    elements, no_body_below = _wall_elements(model, target, info, scale, options)
+    occ_elements = _occluder_elements(model, target, storeys, info)
+    meshes_by_id = _meshes(model, elements + occ_elements, options.openings, options.threads)
+    t_geom = time.perf_counter()
+
+    def in_storey_frame(v: np.ndarray) -> np.ndarray:
+        return v @ T_storey_world[:3, :3].T + T_storey_world[:3, 3]
+
+    meshes: List[wall_faces.ElementMesh] = []
+    no_body = []
+    for e in elements:
+        if e.id() not in meshes_by_id:
+            no_body.append(e)
+            continue
+        v, tri = meshes_by_id[e.id()]
+        st = _storey_of(e)
+        meshes.append(wall_faces.ElementMesh(e.GlobalId, e.is_a(), e.Name or "", _storey_label(st) if st else "",
+                                             in_storey_frame(v), tri))
+    occluders = []
+    for e in occ_elements:
+        if e.id() in meshes_by_id:
+            v, tri = meshes_by_id[e.id()]
+            occ = wall_faces.occluder_from_mesh(e.GlobalId, in_storey_frame(v), tri)
+            if occ is not None:
+                occluders.append(occ)
+
+    z_hi = band[1]
+    if options.clip_to_storey and info.height is not None:
+        z_hi = min(z_hi, info.height)
+    window = (max(0.0, band[0]), z_hi)
+    if window[1] <= window[0]:
+        raise ConfigError(f"camera band {band[0]:.2f}..{band[1]:.2f} m leaves no height to keep on storey "
+                          f"{info.name!r}")
+    fopts = wall_faces.FaceOptions(z_lo=window[0], z_hi=window[1], min_width=options.min_width,
+                                   min_area=options.min_area, eye_z=eye_z)
+    planes, stats = wall_faces.wall_planes(meshes, fopts, occluders)
+    map_planes, stats.invalid = _map_planes(planes, meshes)
+    map_planes, enclosed = _drop_enclosed(map_planes, ENCLOSED_DEPTH)
+    if not map_planes:
+        raise ConfigError(f"{p}: storey {info.name!r} has no usable wall faces "
+                          f"({len(elements)} elements, {len(no_body)} without a body)")
+    plane_map = PlaneMap(map_planes, source=f"{p.name}:{info.name}")
+    t_faces = time.perf_counter()
+
+    warnings = []
+    if no_body:
+        listed = ", ".join(f"{e.is_a()} {e.Name or ''!r} ({e.GlobalId})" for e in no_body[:20])
+        more = f" and {len(no_body) - 20} more" if len(no_body) > 20 else ""
+        hint = ""
+        if any(getattr(e, "IsDecomposedBy", None) for e in no_body):
+            hint = ("; some are decomposed into parts: add the parts' class to the types "
+                    "(--types IfcWall,IfcColumn,IfcBuildingElementPart)")
+        warnings.append(f"skipped {len(no_body)} element(s) with no solid body: {listed}{more}{hint}")
+    if stats.non_closed_elements:
+        names = ", ".join(meshes[i].guid for i in stats.non_closed_elements[:10])
+        warnings.append(f"{len(stats.non_closed_elements)} element mesh(es) are not closed, "
+                        f"so their face orientation is unchecked: {names}")
+
+    counts = dict(elements=len(elements), occluders=len(occluders), no_body=len(no_body),
+                  no_body_below=no_body_below, **stats.as_dict())
+    counts.update(enclosed=enclosed, planes=len(map_planes), polygons=sum(len(mp.polygons) for mp in map_planes))
+    report = {
+        "model": {
+            "file": p.name,
+            "sha256": _file_sha256(p),
+            "schema": getattr(model, "schema_identifier", model.schema),
+            "length_unit_m": scale,
+            "application": _application(model),
+        },
+        "storey": asdict(info),
+        "transform": {"T_storey_world": np.round(T_storey_world, 9).tolist(),
+                      "description": _describe_transform(T_storey_world)},
+        "band": [float(band[0]), float(band[1])],
+        "eye_z": float(eye_z),
+        "window": [float(window[0]), float(window[1])],
+        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()},
+        "counts": counts,
+        "warnings": warnings,
+        "seconds": {"open": round(t_open - t0, 3), "geometry": round(t_geom - t_open, 3),
+                    "faces": round(t_faces - t_geom, 3), "total": round(t_faces - t0, 3)},
+        "ifcopenshell": _require_ifcopenshell().version,
+    }
+    return ImportResult(plane_map, info, T_storey_world, window, report, warnings)
