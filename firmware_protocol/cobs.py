@@ -11,11 +11,6 @@ class CobsError(ValueError):
     """The bytes are not a valid COBS encoding."""
 
 
-def max_encoded_length(n: int) -> int:
-    """Upper bound of the encoded size of n bytes (without the delimiter)."""
-    return n + 1 + n // 254
-
-
 def cobs_encode(data: bytes) -> bytes:
     """Encode canonically: a final run of exactly 254k non-zero bytes gets no trailing 0x01 block."""
     out = bytearray()

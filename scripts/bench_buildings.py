@@ -1,4 +1,4 @@
-"""Large maps and real buildings for BENCHMARKS.md (issue 5): how visibility + ROI cost grows with
+"""Large maps and real buildings for BENCHMARKS.md: how visibility + ROI cost grows with
 the map's size, and localization in the imported ground floors of the shared IFC models, with
 the paper arena as the baseline.
 
@@ -43,7 +43,7 @@ BUILDINGS = [
     ("duplex_level1.yaml", "Duplex_A_20110907.ifc", "Level 1"),
     ("institute_ground.yaml", "AC11-Institute-Var-2-IFC.ifc", "Erdgeschoss"),
 ]
-TARGET_MS = 1.0  # issue 5: visibility + ROI of a 2,000-plane map, median per frame
+TARGET_MS = 1.0  # target: visibility + ROI of a 2,000-plane map, median per frame
 RENDER_RADIUS = 12.0  # m: the renderer gets the planes this close (its depth stops at 10 m)
 
 
@@ -310,7 +310,8 @@ def buildings(quick: bool) -> List[str]:
              f"Ground floors imported from the shared IFC models by `robotctl map import-ifc`, the paper arena as the "
              f"baseline. Per map {n_poses} poses sampled in free space (at least 0.4 m from every wall face, inside "
              "rooms and corridors: rays cast from the point must meet walls from their front), random heading; both "
-             "cameras rendered with D435i noise, the floor, a backdrop and clutter boxes the map does not know (about "
+             "cameras rendered with the realistic D435i model (docs/simulator.md), the floor, a backdrop and clutter "
+             "boxes the map does not know (about "
              "one per 4 m^2 plus two within 2.5 m of the robot); localized (joint method) from a coarse pose 0.1 m "
              "off in a random direction and 10 deg off, with the localizer's default coarse covariance. Errors are "
              "over poses with status ok. Used planes: 'off' when the fit in the robot frame is more than 3 deg or "
@@ -402,7 +403,7 @@ def buildings(quick: bool) -> List[str]:
 def run(quick: bool = False) -> str:
     import platform
 
-    parts = ["## Large maps and real buildings (issue 5)", "",
+    parts = ["## Large maps and real buildings", "",
              f"_Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical cores shared with "
              f"other work, Python {platform.python_version()}, numpy {np.__version__}; single thread._", ""]
     for fn in (scaling, buildings):

@@ -1,4 +1,4 @@
-"""Controller benchmarks (issue 4): the paper's path experiment, control-loop jitter and CPU.
+"""Controller benchmarks: the paper's path experiment, control-loop jitter and CPU.
 
 - The path-tracking experiment: ``robotctl sim``'s 15 + 15 runs, per-target tables, and the
   wall time of the whole command.
@@ -7,7 +7,8 @@
   frame localized. The frames are pre-rendered (a cycle of noisy frames at the robot's pose,
   robot holding still) so the renderer's cost does not load the machine while we measure; it
   is reported apart. CPU is read per thread from /proc, so the simulator's own threads (the
-  board emulator, the fake cameras) are reported apart from the controller's.
+  board emulator, the fake cameras) are reported apart from the controller's. The CPU budget
+  (medians over alternating windows, the Nano estimate) is scripts/bench_cpu.py's.
 """
 
 from __future__ import annotations
@@ -35,23 +36,8 @@ from robot.config import load_robot_config  # noqa: E402
 from robot.maps.plane_map import load_plane_map  # noqa: E402
 from robot.sim.realtime import RealtimeSimSettings, sim_rig  # noqa: E402
 
-
-def _thread_cpu() -> Dict[int, float]:
-    """CPU seconds (user + system) per native thread id of this process, from /proc."""
-    tick = os.sysconf("SC_CLK_TCK")
-    out = {}
-    for tid in os.listdir("/proc/self/task"):
-        try:
-            with open(f"/proc/self/task/{tid}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
-            out[int(tid)] = (int(fields[11]) + int(fields[12])) / tick
-        except (OSError, IndexError, ValueError):
-            continue
-    return out
-
-
-def _thread_names() -> Dict[int, str]:
-    return {t.native_id: t.name for t in threading.enumerate() if t.native_id is not None}
+sys.path.insert(0, str(REPO / "scripts"))
+from bench_cpu import GROUPS, group_of, thread_cpu, thread_names  # noqa: E402
 
 
 def measure_realtime(seconds: float = 20.0, fps: float = 30.0) -> Dict[str, object]:
@@ -61,57 +47,46 @@ def measure_realtime(seconds: float = 20.0, fps: float = 30.0) -> Dict[str, obje
     settings = RealtimeSimSettings(fps=fps, decimation=1, frame_cache=8, radius_error_std=0.0, slip_noise=0.0)
     opts = AppOptions(install_signal_handlers=False, stop_when_done=False)
     result: Dict[str, object] = {}
+    marks: Dict[str, object] = {}
     with sim_rig(robot, arena, pose, settings, opts, initial_pose=pose) as rig:
-        marks: Dict[str, object] = {}
+        app = rig.app
 
-        def start_window():
-            marks["cpu0"] = _thread_cpu()
-            marks["wall0"] = time.monotonic()
-            marks["ticks0"] = len(rig.app.stats.tick_times)
-            marks["loc0"] = rig.app.stats.localizations
-            marks["frames0"] = dict(rig.app.stats.frames)
-
-        def end_window():
-            marks["cpu1"] = _thread_cpu()
-            marks["wall1"] = time.monotonic()
-            marks["names"] = _thread_names()
-            marks["ticks"] = list(rig.app.stats.tick_times[marks["ticks0"]:])
-            marks["loc"] = rig.app.stats.localizations - marks["loc0"]
-            marks["frames"] = {k: v - marks["frames0"].get(k, 0) for k, v in rig.app.stats.frames.items()}
-            marks["ms"] = list(rig.app.stats.localize_ms[-marks["loc"]:]) if marks["loc"] else []
-            rig.app.request_stop("benchmark done")
+        async def window() -> None:
+            loop = asyncio.get_running_loop()
+            guard = loop.time() + 60.0  # hang guard only
+            while app.stats.localizations < 10 and loop.time() < guard:  # start-up done, frames flowing
+                await asyncio.sleep(0.05)
+            cpu0, wall0 = thread_cpu(), loop.time()
+            ticks0, loc0, frames0 = len(app.stats.tick_times), app.stats.localizations, dict(app.stats.frames)
+            await asyncio.sleep(seconds)
+            marks.update(cpu0=cpu0, cpu1=thread_cpu(), wall=loop.time() - wall0, names=thread_names(),
+                         ticks=list(app.stats.tick_times[ticks0:]), loc=app.stats.localizations - loc0,
+                         frames={k: v - frames0.get(k, 0) for k, v in app.stats.frames.items()})
+            marks["ms"] = list(app.stats.localize_ms[-marks["loc"]:]) if marks["loc"] else []
 
         async def main():
-            loop = asyncio.get_running_loop()
-            loop.call_later(3.0, start_window)  # after start-up and the frame cache is rendered
-            loop.call_later(3.0 + seconds, end_window)
-            return await rig.app.run()
+            task = asyncio.ensure_future(app.run())
+            try:
+                await window()
+            finally:
+                app.request_stop("benchmark done")
+            return await task
 
         asyncio.run(main())
         render_s = sum(c.render_seconds for c in rig.cameras)
         result["render_ms_per_frame"] = 1e3 * render_s / max(1, sum(c._cache_n for c in rig.cameras))
-        result["emulator_thread"] = rig.emulator._thread.native_id if rig.emulator._thread else None
-    wall = marks["wall1"] - marks["wall0"]
+    wall = marks["wall"]
     cpu0, cpu1, names = marks["cpu0"], marks["cpu1"], marks["names"]
-    per_thread = {tid: cpu1.get(tid, 0.0) - cpu0.get(tid, 0.0) for tid in cpu1}
-    groups = {"event loop (control, fusion, serial I/O)": 0.0, "localization thread": 0.0,
-              "serial reader thread": 0.0, "other controller threads": 0.0,
-              "simulator: board emulator": 0.0, "simulator: fake cameras": 0.0}
+    # The same thread groups as scripts/bench_cpu.py; the simulator's threads are kept apart by name.
+    groups = {g: 0.0 for g in GROUPS}
+    groups.update({"simulator: board emulator": 0.0, "simulator: fake cameras": 0.0})
     main_tid = threading.main_thread().native_id
-    for tid, cpu in per_thread.items():
+    for tid, cpu in cpu1.items():
         name = names.get(tid, "")
-        if tid == main_tid:
-            groups["event loop (control, fusion, serial I/O)"] += cpu
-        elif name.startswith("localize"):
-            groups["localization thread"] += cpu
-        elif name.startswith("firmware-emulator"):
-            groups["simulator: board emulator"] += cpu
-        elif name.startswith("camera-"):
-            groups["simulator: fake cameras"] += cpu
-        elif "serial" in name or "reader" in name or "chassis" in name:
-            groups["serial reader thread"] += cpu
-        else:
-            groups["other controller threads"] += cpu
+        g = group_of(tid, name, main_tid)
+        if g is None:
+            g = "simulator: fake cameras" if name.startswith("camera-") else "simulator: board emulator"
+        groups[g] += cpu - cpu0.get(tid, 0.0)
     ticks = np.array(marks["ticks"])
     periods = np.diff(ticks) * 1e3
     jitter = np.abs(periods - 1e3 / robot.control.rate)
@@ -141,7 +116,7 @@ def measure_experiment(quick: bool) -> str:
 
 
 def run(quick: bool = False) -> str:
-    out = ["## Controller (issue 4)", ""]
+    out = ["## Controller", ""]
     out.append("### The paper's path-tracking experiment (Section 4.3, Fig 18)")
     out.append("")
     out.append("Simulated clock; each run has its own wheel-radius errors (about 1 %, per wheel) and random slip, the "
@@ -172,7 +147,8 @@ def run(quick: bool = False) -> str:
     out.append(f"| **controller total** | **{controller * 100:.1f} %** |")
     out.append("")
     out.append(f"The renderer (simulator only) costs {r['render_ms_per_frame']:.0f} ms per 848x480 frame; the cycle of "
-               "frames is rendered before the window and not counted above.")
+               "frames is rendered before the window and not counted above. One window of one run: the CPU budget "
+               "section (scripts/bench_cpu.py) has medians over alternating runs and the Nano estimate.")
     out.append("")
     out.append(f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
                "OPENBLAS_NUM_THREADS=1.")

@@ -1,4 +1,4 @@
-"""IFC import figures for BENCHMARKS.md: time and face counts per shared model (issue 5).
+"""IFC import figures for BENCHMARKS.md: time and face counts per shared model.
 
 Reads the models from ../shared/data/ifc/ (see tests/data/README.md); a model that is absent is
 listed as not run.
@@ -63,12 +63,12 @@ def run(quick: bool = False) -> str:
 
         from robot.maps.ifc_import import ImportOptions, import_storey, list_storeys, open_model
     except ImportError as e:
-        return "\n".join(["## IFC import (issue 5)", "", f"_import not run: {e} (pip install .[bim])_", "",
+        return "\n".join(["## IFC import", "", f"_import not run: {e} (pip install .[bim])_", "",
                           *large_map_check(1 if quick else 3)])
     lo, hi, eye = camera_band_from_config(load_robot_config(ROOT / "config" / "robot.yaml"))
     repeats = 1 if quick else 3
     lines = [
-        "## IFC import (issue 5)",
+        "## IFC import",
         "",
         f"Ground-floor maps from the shared models; median of {repeats} run(s), {THREADS} geometry threads, "
         f"camera band z {lo:.2f}..{hi:.2f} m from config/robot.yaml. "

@@ -1,5 +1,5 @@
 """Localizer figures for BENCHMARKS.md: the paper's Section 4.2 sweeps, static accuracy against the
-Cramer-Rao bound, and time per localization (DESIGN.md section 6)."""
+Cramer-Rao bound, and time per localization (see docs/architecture.md, 'Depth noise and the accuracy bound')."""
 
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ def sweeps(quick):
     loc = Localizer(ROBOT, ARENA)
     scene = SimScene(ARENA)
     n = 6 if quick else 21
-    lines = ["### Section 4.2 sweeps (both cameras, default noise, coarse std assumed 0.1 m / 10 deg)", "",
+    lines = ["### Section 4.2 sweeps (both cameras, realistic D435i noise, coarse std assumed 0.1 m / 10 deg)", "",
              "| true heading | swept | method | frames | all planes right | wrong planes (coarse heading < 45 deg off) | "
              "wrong planes (>= 45 deg off: symmetric) | dropped | status ok | "
              "pos err median / p95 (mm) | heading err median / p95 (deg) |",
@@ -203,7 +203,7 @@ def timing(quick):
 
 
 def run(quick: bool = False) -> str:
-    parts = ["## Localizer (issue 2)", ""]
+    parts = ["## Localizer", ""]
     for fn in (timing, static_accuracy, efficiency, sweeps):
         t0 = time.perf_counter()
         parts += fn(quick)

@@ -1,4 +1,4 @@
-"""Real-camera driver figures for BENCHMARKS.md (issue 6), measured through librealsense playback.
+"""Real-camera driver figures for BENCHMARKS.md, measured through librealsense playback.
 
 A simulated drive is rendered, recorded into librealsense ``.bag`` files (one written as fast as
 possible for non-real-time playback, one written at its own pace so it plays back at 30 fps like
@@ -122,7 +122,7 @@ def _filter_costs(rs, path, n_frames: int):
 
 
 def run(quick: bool = False) -> str:
-    title = "## Real camera driver: librealsense playback (issue 6)"
+    title = "## Real camera driver: librealsense playback"
     try:
         from drivers.camera.realsense import load_pyrealsense2, pyrealsense2_version
 

@@ -26,7 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
-SECTIONS = ["bench_localizer", "bench_controller", "bench_buildings", "bench_protocol", "bench_ifc", "bench_realsense"]
+SECTIONS = ["bench_localizer", "bench_controller", "bench_cpu", "bench_buildings", "bench_protocol", "bench_ifc", "bench_realsense",
+            "bench_render", "bench_calibration", "bench_relocalize", "bench_safety"]
 
 
 def git_describe() -> str:

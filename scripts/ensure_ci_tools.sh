@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # Make sure the tools the systemd tests use are present: shellcheck (lints systemd/install.sh)
-# and systemd-analyze (verifies the unit). Installs the Debian/Ubuntu packages when we are root
-# and have apt-get; otherwise only says what is missing. Always exits 0: the tests that need a
-# missing tool skip with a reason instead of failing.
+# and systemd-analyze (verifies the unit), and the cross compilers of the firmware build
+# (scripts/build_firmware.sh: arm-none-eabi-gcc for a Cortex-M0, avr-gcc and avr-libc for an
+# ATmega328P). Installs the Debian/Ubuntu packages when we are root and have apt-get; otherwise
+# only says what is missing. Always exits 0: the tests that need a missing tool skip with a
+# reason instead of failing.
 set -uo pipefail
 
 missing_pkgs=()
@@ -10,6 +12,15 @@ command -v shellcheck >/dev/null 2>&1 || missing_pkgs+=(shellcheck)
 # pyrealsense2 needs libusb at import time; without it every librealsense test skips.
 { ldconfig -p 2>/dev/null | grep -q "libusb-1.0.so.0"; } || missing_pkgs+=(libusb-1.0-0)
 command -v systemd-analyze >/dev/null 2>&1 || missing_pkgs+=(systemd)
+# Without recommends: the newlib the ARM compiler recommends is 370 MB and the board core needs
+# no C library.
+command -v arm-none-eabi-gcc >/dev/null 2>&1 || missing_pkgs+=(gcc-arm-none-eabi)
+command -v arm-none-eabi-size >/dev/null 2>&1 || missing_pkgs+=(binutils-arm-none-eabi)
+command -v avr-gcc >/dev/null 2>&1 || missing_pkgs+=(gcc-avr)
+command -v avr-size >/dev/null 2>&1 || missing_pkgs+=(binutils-avr)
+[ -e /usr/lib/avr/include/stdint.h ] || missing_pkgs+=(avr-libc)
+# The MQTT broker the VDA 5050 tests start on a loopback port (/usr/sbin is not on every PATH).
+{ command -v mosquitto || [ -x /usr/sbin/mosquitto ]; } >/dev/null 2>&1 || missing_pkgs+=(mosquitto)
 
 if [ ${#missing_pkgs[@]} -eq 0 ]; then
     exit 0

@@ -21,6 +21,7 @@ LOG_DIR=/var/log/robot-controller
 UNIT_NAME=robot-controller.service
 UNIT_DIR=/etc/systemd/system
 UDEV_DIR=/etc/udev/rules.d
+MODULES_LOAD=/etc/modules-load.d/robot-controller.conf
 SERVICE_USER=robot
 SERVICE_GROUPS="dialout plugdev video"
 PYTHON=python3.8
@@ -257,6 +258,9 @@ install_udev_rules() {
     fi
     run udevadm control --reload-rules
     run udevadm trigger --subsystem-match=usb --subsystem-match=tty
+    # The unit's DeviceAllow=char-ttyUSB/char-ttyACM needs these drivers registered before it starts.
+    install_file "$REPO/systemd/robot-controller-modules.conf" "$MODULES_LOAD" 0644
+    run modprobe -a usbserial cdc_acm || warn "could not load usbserial/cdc_acm now; they load at the next boot"
 }
 
 install_unit() {
@@ -315,6 +319,7 @@ do_uninstall() {
     fi
     remove_if_ours "$REPO/systemd/99-realsense-libusb.rules" "$UDEV_DIR/99-realsense-libusb.rules"
     remove_if_ours "" "$UDEV_DIR/99-robot-motor-board.rules"
+    remove_if_ours "$REPO/systemd/robot-controller-modules.conf" "$MODULES_LOAD"
     run udevadm control --reload-rules
     if [ -e "$PREFIX" ]; then
         # Never rm -rf a directory we did not make (a mistyped --prefix /usr, say).

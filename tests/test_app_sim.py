@@ -1,5 +1,5 @@
 """The whole controller in simulation: the simulated-clock runner and the real-time asyncio app
-with the pty firmware emulator and fake cameras, including the faults issue 4 names."""
+with the pty firmware emulator and fake cameras, including a camera stall, a serial link loss and operator signals."""
 
 from __future__ import annotations
 

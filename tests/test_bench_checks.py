@@ -83,19 +83,19 @@ def faulty_emulator(**fault) -> FirmwareEmulator:
 
 def test_bench_on_the_emulator_passes_the_chassis_and_skips_the_cameras(capsys, no_cameras):
     """The command as shipped: default config, 2 s per wheel, table then JSON."""
-    rc, out = bench_cli(["--emulate", "--json"], capsys)
+    rc, out = bench_cli(["--emulate", "--skip-cameras", "--json"], capsys)
     report = json.loads(out.out)
     checks = {c["name"]: c for c in report["checks"]}
     assert rc == 0 and report["ok"] is True
     assert [c["name"] for c in report["checks"]] == [
         "camera front: stream", "camera front: intrinsics", "camera left: stream", "camera left: intrinsics",
-        "chassis: handshake"] + WHEEL_NAMES + ["chassis: watchdog"]
+        "chassis: handshake", "wheels: off the ground"] + WHEEL_NAMES + ["chassis: watchdog"]
     for name, c in checks.items():
         if name.startswith("camera"):
-            assert c["status"] == SKIP and c["detail"] == "no RealSense device"
+            assert c["status"] == SKIP and c["detail"] == "--skip-cameras"
         else:
             assert c["status"] == PASS, c
-    assert report["summary"] == {"pass": 6, "fail": 0, "skip": 4}
+    assert report["summary"] == {"pass": 7, "fail": 0, "skip": 4}
     hs = checks["chassis: handshake"]["data"]
     assert hs["ticks_per_rev"] == 1320 and hs["watchdog_ms"] == 200 and hs["report_hz"] == 100.0
     for w in WHEEL_NAMES:
@@ -107,14 +107,14 @@ def test_bench_on_the_emulator_passes_the_chassis_and_skips_the_cameras(capsys, 
 
 
 def test_the_table_says_what_ran_and_the_motion_can_be_skipped(capsys, no_cameras):
-    rc, out = bench_cli(["--emulate", "--skip-motion"], capsys)
+    rc, out = bench_cli(["--emulate", "--skip-cameras", "--skip-motion"], capsys)
     lines = out.out.splitlines()
     assert rc == 0
     assert lines[0].split() == ["check", "result", "detail"]
     rows = {ln[:25].strip(): ln[25:].split(None, 1) for ln in lines[1:-1]}
     assert rows["chassis: handshake"][0] == "pass"
-    assert all(rows[w] == ["skip", "--skip-motion"] for w in WHEEL_NAMES + ["chassis: watchdog"])
-    assert lines[-1] == "1 passed, 0 failed, 9 skipped"
+    assert all(rows[w] == ["skip", "--skip-motion"] for w in ["wheels: off the ground"] + WHEEL_NAMES + ["chassis: watchdog"])
+    assert lines[-1] == "1 passed, 0 failed, 10 skipped"
     assert "ON BLOCKS" not in out.err  # nothing turns, nothing to warn about
 
 
@@ -162,14 +162,14 @@ def test_a_board_clamping_below_the_test_speed_fails_every_wheel(no_cameras):
 
 # Ports and bad input  ----------------------------------------------------------------------------
 
-def test_an_absent_port_skips_the_chassis_unless_named(tmp_path, capsys, no_cameras):
+def test_an_absent_port_fails_the_chassis_named_or_not(tmp_path, capsys, no_cameras):
     config = tmp_path / "robot.yaml"
     config.write_text("cameras:\n  - {name: front, width: 848, height: 480, fps: 30, hfov_deg: 87, vfov_deg: 58,\n"
                       "     mount: {xyz: [0.1, 0, 0.12], rpy_deg: [0, 0, 0]}}\n"
                       f"chassis:\n  port: {tmp_path / 'absent-default'}\n")
     rc, out = bench_cli(["--config", str(config), "--json"], capsys)
     checks = {c["name"]: c for c in json.loads(out.out)["checks"]}
-    assert rc == 0 and checks["chassis: handshake"]["status"] == SKIP
+    assert rc == 1 and checks["chassis: handshake"]["status"] == FAIL  # the motor board is required
     assert checks["chassis: handshake"]["detail"] == f"motor board port {tmp_path / 'absent-default'} is absent"
 
     rc, out = bench_cli(["--config", str(config), "--port", str(tmp_path / "named"), "--json"], capsys)
@@ -254,7 +254,8 @@ def test_camera_checks_skip_without_a_device_and_fail_a_missing_one(monkeypatch)
     robot = RobotConfig(cameras=(FRONT,))
     monkeypatch.setattr(bc, "connected_cameras", lambda: ([], "pyrealsense2 is not usable (no module)"))
     assert {(r.status, r.detail) for r in bc.camera_checks(robot, BenchOptions())} == {
-        (SKIP, "pyrealsense2 is not usable (no module)")}
+        (FAIL, "pyrealsense2 is not usable (no module)"), (SKIP, "camera not connected")}  # cameras are required
+    assert {r.status for r in bc.camera_checks(robot, BenchOptions(cameras=False))} == {SKIP}
     monkeypatch.setattr(bc, "connected_cameras", lambda: (["999"], None))
     stream, intr = bc.camera_checks(robot, BenchOptions())
     assert stream.status == FAIL and "036522070001 is not connected (connected: 999)" in stream.detail

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -11,10 +12,14 @@ from drivers.chassis.encoders import EncoderOdometry
 from firmware_protocol.counters import delta_i32 as wrap_delta_i32
 from robot.base.samples import WheelOdometry
 from robot.config import load_robot_config
+from robot.config.safety import SafetyConfig
 from robot.control.core import ControllerCore
 from robot.control.path_file import parse_path
 
-ROBOT = load_robot_config("config/robot.yaml")
+# These tests feed no depth frames: the protective stop (which then holds the robot, see the last
+# test here and tests/test_protective_stop*.py) is off for them.
+ROBOT_WITH_SAFETY = load_robot_config("config/robot.yaml")
+ROBOT = replace(ROBOT_WITH_SAFETY, safety=SafetyConfig(enabled=False))
 COV = np.diag([1e-4, 1e-4, 1e-4])
 
 
@@ -56,9 +61,11 @@ def test_no_command_is_sent_while_the_chassis_link_is_down():
 def test_stale_odometry_brings_the_speed_target_to_zero():
     core, t, out = _driving_core()
     v0 = out.command.vx
-    # odometry stops: after max_command_age the pose is stale and the target is zero
+    # odometry stops while the ticks go on: after max_command_age the pose is stale and the target is zero
     t2 = t + ROBOT.health.max_command_age + 0.05
-    out = core.control_step(t2)
+    while t < t2:
+        t = min(t + 0.02, t2)
+        out = core.control_step(t)
     assert out.speed_scale == 0.0 and "stale" in out.reason
     for k in range(100):  # the limiter brakes within its limits, never a jump
         out = core.control_step(t2 + 0.02 * (k + 1))
@@ -96,12 +103,12 @@ def test_teleop_deadman_zeroes_an_old_operator_twist():
     t = 0.0
     for _ in range(25):
         t += 0.02
-        core.on_odometry(_odo(t))
+        core.on_odometry(_odo(t, dt=0.02))  # each sample spans the time since the previous one
         out = core.control_step(t)
     assert out.command.vx > 0.05
     for _ in range(100):  # no new key for 2 s: the deadman brings it to rest
         t += 0.02
-        core.on_odometry(_odo(t))
+        core.on_odometry(_odo(t, dt=0.02))
         out = core.control_step(t)
     assert out.command.vx == pytest.approx(0.0, abs=1e-9)
     core.set_teleop_twist(t, math.nan, 0.0, 0.0)  # a NaN from a broken input never becomes motion
@@ -124,3 +131,17 @@ def test_encoder_odometry_unwraps_int32_and_refuses_impossible_jumps():
     assert s is not None and s.angles[0] == pytest.approx(20 * 2 * math.pi / 1320)
     assert wrap_delta_i32(-(2**31) + 10, 2**31 - 10) == 20
     assert enc.update((100000, 0, 0, 0), 0.02, 0.02) is None and enc.implausible == 1
+
+
+def test_without_fresh_depth_the_protective_stop_holds_the_robot():
+    core = ControllerCore(ROBOT_WITH_SAFETY, vision=False, t_start=0.0)
+    core.set_pose(0.0, 0.0, 0.0, 0.0, COV)
+    core.set_chassis_link(True)
+    core.follow(_plan())
+    t = 0.0
+    for _ in range(100):
+        t += 0.01
+        core.on_odometry(_odo(t))
+        out = core.control_step(t)
+    assert out.wheels is not None and max(abs(w) for w in out.wheels) == 0.0
+    assert "no fresh depth" in out.reason

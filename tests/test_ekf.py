@@ -380,3 +380,74 @@ def test_late_gyro_sample_is_replayed():
     f_b.predict_gyro(0.01, 0.3, 1e-4)
     assert np.array_equal(f_a.state()[1], f_b.state()[1])
     assert np.array_equal(f_a.state()[2], f_b.state()[2])
+
+
+def _braking_x(t: float) -> float:
+    """True x of a robot at 0.15 m/s until 1.2 s (its commands stopped at 1.0 s, the board's watchdog
+    at 1.2 s), then braking to rest by 1.45 s: 48.75 mm after 1.0 s, all of it early in [1, 2]."""
+    if t <= 1.2:
+        return 0.3 + 0.15 * t
+    if t <= 1.45:
+        u = t - 1.2
+        return 0.48 + 0.15 * u - 0.3 * u * u
+    return 0.48 + 0.01875
+
+
+def _run_through_a_gap(cfg: FilterConfig, seed: int):
+    """Odometry every 10 ms, except one 1 s interval [1, 2] bridged by cumulative ticks (its exact
+    mean twist arrives at 2 s); two walls at 15 Hz throughout, fused 50 ms after capture, so the
+    fixes taken in the gap are in the filter before the sample that spans it. Returns the NEES
+    after each odometry input."""
+    rng = np.random.default_rng(seed)
+    f = PoseFilter(cfg)
+    f.set_pose(0.0, 0.3, 0.6, 0.0, np.diag([0.002 ** 2, 0.002 ** 2, math.radians(0.2) ** 2]))
+    pending = []
+    for k in range(1, 46):
+        tc = k / 15.0 + 0.003
+        pose = (_braking_x(tc), 0.6, 0.0)
+        pending += [(tc + 0.05, measure("wall_south", pose, tc, rng)),
+                    (tc + 0.05, measure("wall_east", pose, tc, rng, camera="left"))]
+    odom = ([(k * 0.01, 0.15) for k in range(1, 101)] + [(2.0, _braking_x(2.0) - _braking_x(1.0))]
+            + [(2.0 + k * 0.01, 0.0) for k in range(1, 101)])
+    out, j, prev = [], 0, 0.0
+    for t, v in odom:
+        while j < len(pending) and pending[j][0] <= t:
+            f.update_plane(pending[j][1])
+            j += 1
+        Q = Q_TWIST * min(1.0, 0.01 / (t - prev))  # ripple averages down over a long interval
+        prev = t
+        assert f.predict_twist(t, v, 0.0, 0.0, Q).accepted
+        out.append(nees(f, np.array([_braking_x(t), 0.6, 0.0])))
+    return out
+
+
+def test_a_long_odometry_interval_is_not_a_constant_velocity_path_through_the_fixes_inside_it():
+    """The robot braked early in a 1 s dropout. Placed on a constant-velocity path, the fixes taken
+    meanwhile contradict the odometry and the filter ends up overconfident; with the gap's unknown
+    timing in the covariance they are accepted where the robot really was, and NEES stays honest."""
+    honest = [max(_run_through_a_gap(FilterConfig(), seed)) for seed in range(20)]
+    constant = [max(_run_through_a_gap(FilterConfig(max_odom_interval=5.0), seed)) for seed in range(20)]
+    limit = chi2_threshold(0.999, 3)
+    assert max(honest) < limit, sorted(honest)
+    assert sum(n > limit for n in constant) >= 5, sorted(constant)  # the scenario does test something
+
+
+def test_an_unsplit_long_interval_keeps_its_exact_displacement():
+    """No fix inside the gap: the bridged displacement is known exactly and costs nothing extra."""
+    a, b = PoseFilter(), PoseFilter(FilterConfig(max_odom_interval=5.0))
+    for f in (a, b):
+        f.set_pose(0.0, 0.0, 0.0, 0.0, np.eye(3) * 1e-6)
+        f.predict_twist(2.0, 0.05, 0.0, 0.1, Q_TWIST * 0.005)
+    np.testing.assert_array_equal(a.state()[1], b.state()[1])
+    np.testing.assert_array_equal(a.state()[2], b.state()[2])
+
+
+def test_past_the_newest_odometry_the_held_motion_is_uncertain():
+    """A robot whose odometry stopped may have stopped too, or kept going for the hold time: the
+    provisional covariance covers half the held displacement along its direction."""
+    f = PoseFilter()
+    f.set_pose(0.0, 0.0, 0.0, 0.0, np.eye(3) * 1e-8)
+    f.predict_twist(0.01, 0.2, 0.0, 0.0, Q_TWIST * 1e-4)
+    _, _, _, P = f.predicted(0.01 + FilterConfig().hold)
+    held = 0.2 * FilterConfig().hold
+    assert math.sqrt(P[0, 0]) >= 0.5 * held and math.sqrt(P[1, 1]) < 0.5 * math.sqrt(P[0, 0])

@@ -1,4 +1,4 @@
-"""Frame conventions and the plane transform identities of DESIGN.md section 2."""
+"""Frame conventions and the plane transform identities (docs/architecture.md, 'Frames and units')."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from robot.base.geometry import (
     R_BODY_OPTICAL,
     invert_transform,
     mount_to_T_robot_camera,
+    plane_axes,
     pose_to_T_ground_robot,
     rpy_to_matrix,
     transform_plane,
@@ -18,6 +19,7 @@ from robot.base.geometry import (
     wrap_angle,
 )
 from robot.config import load_robot_config
+from robot.maps.plane_map import load_plane_map
 
 
 def random_transform(rng):
@@ -78,3 +80,25 @@ def test_wrap_angle_range():
     w = wrap_angle(a)
     assert np.all(w >= -math.pi) and np.all(w < math.pi)
     assert np.allclose(np.cos(w), np.cos(a)) and np.allclose(np.sin(w), np.sin(a))
+
+
+def test_plane_axes_of_a_wall_are_horizontal_and_up():
+    a, b = plane_axes(np.array([-1.0, 0.0, 0.0]))  # a wall seen from -x
+    assert a == pytest.approx([0.0, -1.0, 0.0]) and b == pytest.approx([0.0, 0.0, 1.0])
+    rng = np.random.default_rng(5)
+    for n in [np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, -1.0])] + [v / np.linalg.norm(v) for v in rng.normal(size=(50, 3))]:
+        a, b = plane_axes(n)
+        assert np.allclose([a @ a, b @ b, a @ b, a @ n, b @ n], [1, 1, 0, 0, 0], atol=1e-12)
+        assert np.allclose(np.cross(a, b), n, atol=1e-12)
+
+
+def test_plane_axes_keep_the_maps_winding():
+    # Map polygons are counter-clockwise seen from their normal: positive area in (a, b).
+    for name in ("paper_arena.yaml", "fzk_haus_ground.yaml"):
+        for plane in load_plane_map(f"config/maps/{name}").planes:
+            a, b = plane_axes(plane.normal)
+            areas = []
+            for poly in plane.polygons:
+                x, y = poly @ a, poly @ b
+                areas.append(0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+            assert min(areas) > 0 and sum(areas) == pytest.approx(plane.area, rel=1e-9)

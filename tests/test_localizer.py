@@ -18,10 +18,10 @@ ROBOT = load_robot_config("config/robot.yaml")
 ARENA = load_plane_map("config/maps/paper_arena.yaml")
 
 
-def frames_at(plane_map, pose, seed=0, clutter=(), cameras=("front", "left")):
+def frames_at(plane_map, pose, seed=0, clutter=(), cameras=("front", "left"), noise="realistic"):
     rng = np.random.default_rng(seed)
     scene = SimScene(plane_map, clutter)
-    return [render_depth_frame(ROBOT, scene, c, pose, rng=rng) for c in cameras]
+    return [render_depth_frame(ROBOT, scene, c, pose, rng=rng, noise=noise) for c in cameras]
 
 
 def pose_error(res, truth):
@@ -42,9 +42,10 @@ def test_estimators_recover_known_poses(method, truth, offset):
     pos, head = pose_error(res, truth)
     assert res.status == "ok"
     assert pos < 0.002 and head < math.radians(0.1)
-    # The reported covariance is a covariance: symmetric, positive definite, small but not zero.
+    # The reported covariance is a covariance: symmetric, positive definite, small but not zero. It
+    # carries the depth scale, mount and as-built errors that pixels do not average down (about 1 cm).
     assert np.allclose(res.cov, res.cov.T) and np.all(np.linalg.eigvalsh(res.cov) > 0)
-    assert math.sqrt(res.cov[0, 0]) < 0.005
+    assert math.sqrt(res.cov[0, 0]) < 0.03
     used = {p.id for p in res.planes if p.used}
     assert len(used) >= 2
 
@@ -74,14 +75,17 @@ def test_single_wall_is_degenerate_along_the_wall(method):
     pm = PlaneMap([wall])
     truth = (0.0, 0.0, 0.0)
     coarse = (0.03, 0.04, 0.05)
-    res = Localizer(ROBOT, pm).localize(frames_at(pm, truth, cameras=("front",)), coarse, method=method)
+    # About degeneracy, not accuracy: the simple camera model, whose error averages out, so the
+    # 2 mm along the normal below holds (the realistic camera's wave and subpixel bias give 2.0 to
+    # 2.2 mm on this one wall at 1.4 m).
+    res = Localizer(ROBOT, pm).localize(frames_at(pm, truth, cameras=("front",), noise="simple"), coarse, method=method)
     assert res.status == "degenerate"
     assert [u["label"] for u in res.unobservable] == ["y"]
     assert abs(res.x - truth[0]) < 0.002  # along the normal: measured
     assert abs(math.remainder(res.phi - truth[2], 2 * math.pi)) < math.radians(0.2)
     assert res.y == pytest.approx(coarse[1], abs=1e-9)  # along the wall: kept at the coarse value
     assert res.cov[1, 1] >= 0.1**2  # and honestly uncertain
-    assert res.cov[0, 0] < 0.002**2
+    assert res.cov[0, 0] < 0.03**2  # measured, to the depth scale, mount and as-built errors
 
 
 @pytest.mark.parametrize("method", ["joint", "paper"])
@@ -234,8 +238,10 @@ def test_decimated_frames_localize_as_accurately_as_full_frames():
     for seed in range(10):
         for d in errs:
             rng = np.random.default_rng(100 * seed + d)
-            frames = [render_depth_frame(ROBOT, scene, c, truth, rng=rng, decimation=d, frame_number=seed)
-                      for c in ("front", "left")]
+            # The simple camera model: this is about decimation, and the 50 um below is the average of
+            # independent noise; the realistic camera's fixed wave gives about 0.12 mm either way.
+            frames = [render_depth_frame(ROBOT, scene, c, truth, rng=rng, decimation=d, frame_number=seed,
+                                         noise="simple") for c in ("front", "left")]
             res = loc.localize(frames, (0.357, 0.694, 2.61), cov)
             assert res.status == "ok"
             errs[d].append([res.x - truth[0], res.y - truth[1], math.remainder(res.phi - truth[2], 2 * math.pi)])
@@ -286,7 +292,9 @@ def test_a_wall_in_line_with_another_metres_along_it_is_no_rival():
     near = _wall_x("near", 2.0, -2.0, 2.0)
     for other, rival in ((_wall_x("in_line", 2.03, 3.2, 5.0), False), (_wall_x("overlapping", 2.03, 1.5, 4.0), True)):
         pm = PlaneMap([near, other])
-        res = Localizer(ROBOT, pm).localize(frames_at(pm, truth, cameras=("front",)), coarse)
+        # About rival walls, not accuracy: the simple camera model, so the 2 mm below holds (one
+        # wall at 1.9 m seen by the realistic camera is 5 mm off from its wave and subpixel bias).
+        res = Localizer(ROBOT, pm).localize(frames_at(pm, truth, cameras=("front",), noise="simple"), coarse)
         report = [p for p in res.planes if p.id == "near"][0]
         if rival:
             assert not report.used and "ambiguous" in report.reason and other.id in report.reason

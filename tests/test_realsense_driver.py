@@ -1,4 +1,6 @@
-"""The real D435i driver, tested through librealsense itself, off-robot.
+"""The real D435i driver, tested through librealsense itself, off-robot, beyond the camera
+contract every driver meets (tests/contract/test_camera_contract.py: frame types and shapes,
+increasing numbers and host capture times, no duplicates, idempotent start and stop).
 
 The simulator records a run (depth, and gyro/accel) into a librealsense ``.bag`` with
 ``rs.software_device`` + ``rs.recorder``; the driver plays it back through ``rs.pipeline`` exactly as
@@ -341,14 +343,24 @@ def test_intrinsics_come_from_the_stream_not_from_the_config(robot, sim_run, tmp
 
 
 @needs_rs
-def test_timestamps_are_monotonic_and_on_the_host_monotonic_clock(robot, sim_run):
-    src = sim_run["front"]
-    t_before = time.monotonic()
-    frames, arrivals, _, _, _ = play(robot, src["path"])
-    t = np.array([f.t_capture for f in frames])
-    assert np.all(np.diff(t) > 0)
-    assert np.all(t <= np.array(arrivals))  # capture precedes hand-over, on the same clock
-    assert t[0] >= t_before - 1.0  # host monotonic time, not the recording's clock (which starts at 0)
+def test_bag_camera_plays_a_recording_as_the_camera_and_refuses_a_missing_one(robot, sim_run, tmp_path):
+    from drivers.camera.bag import BagCamera
+
+    src = sim_run["left"]
+    cam = BagCamera(with_rs(robot.camera("left"), frame_timeout_ms=150), src["path"])
+    frames: List[DepthFrame] = []
+    cam.start(frames.append)
+    try:
+        assert cam.wait_ended(30)
+    finally:
+        cam.stop()
+    assert [f.frame_number for f in frames] == list(range(N_FRAMES))
+    assert all(np.array_equal(a.depth, b.depth) for a, b in zip(src["frames"], frames))
+    assert cam.device_info["serial"] == "SIM-left" and cam.source.is_playback
+    with pytest.raises(InputError, match="camera 'left': recording .*absent.bag not found"):
+        BagCamera(robot.camera("left"), tmp_path / "absent.bag")
+    with pytest.raises(InputError, match=r"must be a librealsense \.bag"):
+        BagCamera(robot.camera("left"), tmp_path / "run.mcap")
 
 
 @needs_rs
@@ -496,16 +508,27 @@ def test_stalled_stream_is_reported_and_recovers(robot, rt_path):
 @needs_rs
 def test_stuck_stream_is_restarted_by_itself(robot, rt_path):
     """Frames never come back: after ``stalls_before_reset`` timeouts the driver restarts the stream
-    (a recording cannot be hardware-reset), and streaming resumes without anyone's help."""
+    (a recording cannot be hardware-reset), and streaming resumes without anyone's help. Judged by
+    events only: which frame the pause catches, and how many already sit in the pipeline's queue
+    behind it, depend on the machine's speed."""
     frames: List[DepthFrame] = []
+    restart_at: List[int] = []  # how many frames had been delivered when the stream was restarted
     cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100, stalls_before_reset=2),
                           PlaybackFile(rt_path, real_time=True))
+    seen: List[CameraState] = []
+
+    def on_state(name, state):
+        if state is CameraState.STARTING and CameraState.STALLED in seen and not restart_at:
+            restart_at.append(len(frames))
+        seen.append(state)
+
+    cam.on_state_change = on_state
     paused = []
 
     def on_frame(f):
         frames.append(f)
-        if f.frame_number == 4 and not paused:
-            paused.append(True)
+        if f.frame_number >= 2 and not paused:  # ">=": real-time playback may skip any one frame
+            paused.append(f.frame_number)
             cam.device.as_playback().pause()
 
     cam.start(on_frame)
@@ -514,11 +537,50 @@ def test_stuck_stream_is_restarted_by_itself(robot, rt_path):
     finally:
         cam.stop()
     assert cam.stats["reconnects"] == 1 and cam.stats["timeouts"] >= 2 and cam.stats["resets"] == 0
-    numbers = [f.frame_number for f in frames]
-    first, second = _sessions(numbers)
-    assert first[-1] < N_FRAMES // 2 and second[0] == 0 and second[-1] == N_FRAMES - 1  # restarted, and complete
+    assert paused and restart_at, f"states {seen}"
+    first, second = frames[:restart_at[0]], frames[restart_at[0]:]
+    assert paused[0] in [f.frame_number for f in first]
+    for part in (first, second):  # within a session: every frame once, in order
+        assert _increasing([f.frame_number for f in part])
+    assert second and second[-1].frame_number == N_FRAMES - 1  # restarted, and played to the end
+    assert second[0].frame_number < paused[0]  # the recording started again from its beginning
     t = [f.t_capture for f in frames]
     assert all(b > a for a, b in zip(t, t[1:]))  # monotonic across the restart (device clock restarted)
+
+
+class RepeatingPipeline(rs.pipeline if _RS_ERROR is None else object):
+    """librealsense's pipeline, except that the first frameset after each start is handed over twice,
+    as librealsense itself does now and then (after a stream restart under load, in bag playback)."""
+
+    def __init__(self):
+        super().__init__()
+        self._again = None
+        self._first = True
+
+    def try_wait_for_frames(self, timeout_ms=5000):
+        if self._again is not None:
+            fs, self._again = self._again, None
+            return True, fs
+        ok, fs = super().try_wait_for_frames(timeout_ms)
+        if ok and self._first:
+            self._first, self._again = False, fs
+        return ok, fs
+
+
+class RepeatingPlayback(PlaybackFile):
+    """A recording whose pipeline repeats a frameset: the driver's device-source seam, nothing else faked."""
+
+    def make_pipeline(self, rs):
+        return RepeatingPipeline()
+
+
+@needs_rs
+def test_a_frameset_handed_over_twice_is_delivered_once(robot, sim_run):
+    src = sim_run["left"]
+    frames, _, _, cam, _ = play(robot, src["path"], camera="left", source=RepeatingPlayback(src["path"]))
+    assert [f.frame_number for f in frames] == list(range(N_FRAMES))  # frame 0 once, nothing lost
+    assert cam.stats["duplicates"] == 1 and cam.stats["drops"] == 0
+    assert all(b.t_capture > a.t_capture for a, b in zip(frames, frames[1:]))
 
 
 class ResettablePlayback(PlaybackFile):

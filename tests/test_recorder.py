@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import errno
 import inspect
 import io
@@ -9,6 +10,7 @@ import logging
 import math
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,13 +22,26 @@ from mcap.reader import NonSeekingReader, make_reader  # noqa: E402
 
 from robot.base.errors import ConfigError, InputError  # noqa: E402
 from robot.base.samples import DepthFrame  # noqa: E402
+from robot.config import load_robot_config  # noqa: E402
+from robot.config.dump import effective_config_dict  # noqa: E402
+from robot.localization.localizer import PlaneReport  # noqa: E402
+from robot.maps.plane_map import load_plane_map  # noqa: E402
 from robot.recording import schema as ms  # noqa: E402
 from robot.recording.reader import RecordingReader, read_recording, recording_segments  # noqa: E402
 from robot.recording.recorder import BackgroundRecorder, NullRecorder, Recorder  # noqa: E402
 
 MiB = 1024 * 1024
+ROOT = Path(__file__).resolve().parents[1]
 CONFIG_YAML = "cameras:\n  - name: front\n    width: 848\n"
 MAP_YAML = "planes:\n  - id: wall_n\n    vertices: [[0, 1.5, 0], [1.5, 1.5, 0], [1.5, 1.5, 0.3]]\n"
+OFFSET_NS = 1_700_000_000_123_456_789  # wall clock minus monotonic clock, fixed for the tests
+
+
+@pytest.fixture(autouse=True)
+def fixed_wall_clock():
+    old = ms.set_wall_clock(ms.WallClock(offset_ns=OFFSET_NS))
+    yield
+    ms.set_wall_clock(old)
 
 
 def wall_depth(rng, width=848, height=480, z0=1.8, tilt=0.4, depth_scale=0.001):
@@ -65,10 +80,12 @@ def test_round_trip_is_exact(tmp_path):
             assert rec.write_odometry(t, {"t": t - 0.002, "wheel_speeds": [1.0, -1.0, 1.0, -1.0],
                                           "ticks": [10, -10, 10, -10]})
             assert rec.write_depth(t, f)
-            assert rec.write_planes(t, {"camera": f.camera, "planes": [
-                {"id": "wall_n", "n": np.array([0.0, -0.6, 0.8]), "d": -1.8, "inliers": np.int64(5321)}]})
-            assert rec.write_pose(t, 0.5 + i * 1e-3, 0.25, math.pi - 1e-3 * i, cov, quality="good")
-            assert rec.write_cmd(t, {"wheel_speeds": [0.5, 0.5, 0.5, 0.5]})
+            assert rec.write_planes(t, ms.planes_message(t, f.camera, [
+                PlaneReport("wall_n", f.camera, np.int64(5321), np.array([0.0, -0.6, 0.8]), -1.8, True, "ok")],
+                frame_number=f.frame_number, coarse=(0.5, 0.25, math.pi), coarse_cov=cov))
+            assert rec.write_pose(t, 0.5 + i * 1e-3, 0.25, math.pi - 1e-3 * i, cov, quality="degraded",
+                                  reason="heading std 1.2 deg > 1.0 deg")
+            assert rec.write_cmd(t, ms.cmd_message(t, 0.1, 0.0, 0.0, [0.5, 0.5, 0.5, 0.5], sent=True))
         assert rec.write_status(t, {"state": "running", "text": "localization good"})
     assert rec.stopped_reason is None and not rec.active
 
@@ -90,11 +107,15 @@ def test_round_trip_is_exact(tmp_path):
 
     poses = [m.message for m in got if m.topic == "/pose"]
     assert poses[2]["x"] == 0.5 + 2e-3 and poses[2]["phi"] == math.pi - 2e-3  # floats round-trip exactly
-    assert np.array_equal(np.array(poses[0]["cov"]).reshape(3, 3), cov) and poses[0]["quality"] == "good"
+    assert np.array_equal(np.array(poses[0]["cov"]).reshape(3, 3), cov) and poses[0]["quality"] == "degraded"
+    assert poses[0]["reason"].startswith("heading std")
     q = poses[0]["pose"]["orientation"]
     assert math.isclose(2 * math.atan2(q["z"], q["w"]), poses[0]["phi"])
     planes = [m.message for m in got if m.topic == "/planes"]
-    assert planes[0]["planes"][0]["n"] == [0.0, -0.6, 0.8] and planes[0]["planes"][0]["inliers"] == 5321
+    assert planes[0]["planes"][0]["normal"] == [0.0, -0.6, 0.8] and planes[0]["planes"][0]["inliers"] == 5321
+    assert planes[0]["frame_number"] == 1000 and np.array_equal(np.reshape(planes[0]["coarse_cov"], (3, 3)), cov)
+    cmds = [m.message for m in got if m.topic == "/cmd"]
+    assert cmds[0]["wheel_speeds"] == [0.5] * 4 and cmds[0]["sent"] is True and cmds[0]["vx"] == 0.1
 
 
 def test_file_is_a_finished_mcap_that_foxglove_can_index(tmp_path):
@@ -104,17 +125,28 @@ def test_file_is_a_finished_mcap_that_foxglove_can_index(tmp_path):
         rec.write_config(1.0, CONFIG_YAML, MAP_YAML)
         rec.write_depth(1.0, frame(rng, "front", 0, width=212, height=120))
         rec.write_pose(1.0, 0.0, 0.0, 0.0, np.eye(3))
+        label = np.zeros((24, 32), np.int32)
+        rec.write("/roi/front", 1.0, ms.roi_message(1.0, "front", label))
+        rec.write(ms.TOPIC_TF_STATIC, 1.0, ms.transforms_message(1.0, [("base_link", "front_link", np.eye(4))]))
+        rec.write(ms.TOPIC_TF, 1.0, ms.odometry_transforms(1.0, (0.1, 0.2, 0.3), (0.0, 0.0, 0.0)))
     with open(path, "rb") as f:
         reader = make_reader(f)
         summary = reader.get_summary()
-        assert summary is not None and summary.statistics.message_count == 3
+        assert summary is not None and summary.statistics.message_count == 6
         schemas = {c.topic: summary.schemas[c.schema_id] for c in summary.channels.values()}
-        assert schemas["/depth/front"].name == "foxglove.CompressedImage"
+        assert schemas["/depth/front"].name == "foxglove.RawImage"
+        assert schemas["/roi/front"].name == "foxglove.CompressedImage"
+        assert schemas["/tf"].name == schemas["/tf_static"].name == "foxglove.FrameTransforms"
+        assert schemas["/tf"].id != schemas["/tf_static"].id  # one name, two descriptions
         assert schemas["/pose"].name == "foxglove.PoseInFrame"
+        first = summary.statistics.message_start_time
+        assert first == OFFSET_NS + 1_000_000_000  # log times are wall-clock: Foxglove shows the date
         assert all(s.encoding == "jsonschema" for s in schemas.values())
+        assert all(s.data.decode() == ms.schema_text(topic) for topic, s in schemas.items())
         assert {c.message_encoding for c in summary.channels.values()} == {"json"}
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
     assert meta["recording"]["id"] == rec.recording_id and meta["recording"]["segment"] == "0"
+    assert meta["recording"]["clock_offset_ns"] == str(OFFSET_NS)
 
 
 def test_log_time_never_goes_back_and_nan_becomes_null(tmp_path):
@@ -124,7 +156,8 @@ def test_log_time_never_goes_back_and_nan_becomes_null(tmp_path):
         rec.write_status(4.9, {"state": "late caller"})
         rec.write_pose(5.1, float("nan"), 0.0, 0.0, np.full((3, 3), np.inf))
     got = list(read_recording(path))
-    assert [m.log_time_ns for m in got] == [5_000_000_000, 5_000_000_000, 5_100_000_000]
+    assert [m.log_time_ns - OFFSET_NS for m in got] == [5_000_000_000, 5_000_000_000, 5_100_000_000]
+    assert [m.t for m in got] == [5.0, 5.0, 5.1]  # back on the app's monotonic clock
     assert got[1].message["t"] == 4.9
     assert got[2].message["x"] is None and got[2].message["cov"] == [None] * 9
 
@@ -152,6 +185,41 @@ def test_rotation_keeps_each_segment_under_the_limit_and_self_contained(tmp_path
     assert [m.message["x"] for m in whole if m.topic == "/pose"] == [float(i) for i in range(n)]
     numbers = [m.message.frame_number for m in whole if m.topic == "/depth/front"]
     assert numbers == [1000 + i for i in range(n)]
+
+
+def test_every_segment_carries_the_effective_config_and_the_map(tmp_path):
+    robot = load_robot_config(ROOT / "config" / "robot.yaml")
+    arena = load_plane_map(ROOT / "config" / "maps" / "paper_arena.yaml")
+    rng = np.random.default_rng(10)
+    rec = unlimited(tmp_path / "run.mcap", max_file_bytes=400 * 1024)
+    rec.write_config(0.0, CONFIG_YAML, MAP_YAML, effective_config=effective_config_dict(robot, arena.source))
+    rec.write(ms.TOPIC_MAP, 0.0, ms.map_message(arena, 0.0))
+    for i in range(12):
+        rec.write_depth(i / 30, frame(rng, "front", i, width=424, height=240))
+    rec.close()
+    assert len(rec.files) >= 3
+    for p in rec.files:
+        alone = RecordingReader(p, follow_segments=False)
+        assert [m.topic for m in alone.messages()][:2] == ["/config", "/map"], p
+        back = alone.robot_config()
+        assert replace(back, source=robot.source) == robot, p
+        assert back.map_path == str(ROOT / "config" / "maps" / "paper_arena.yaml")
+    whole = list(read_recording(rec.files[0]))
+    assert [m.topic for m in whole].count("/map") == 1  # repeated per segment, yielded once
+    (m,) = [m.message for m in whole if m.topic == "/map"]
+    assert [p["id"] for p in m["planes"]] == [p.id for p in arena.planes]
+
+
+def test_a_recording_without_or_with_a_stale_effective_config(tmp_path):
+    with unlimited(tmp_path / "old.mcap") as rec:
+        rec.write_config(0.0, CONFIG_YAML, MAP_YAML)  # as recordings were made before they carried it
+    assert RecordingReader(tmp_path / "old.mcap").robot_config() is None
+    stale = effective_config_dict(load_robot_config(ROOT / "config" / "robot.yaml"))
+    stale["chassis"]["gear_ratio"] = 30  # a key this code does not know (any more)
+    with unlimited(tmp_path / "stale.mcap") as rec:
+        rec.write_config(0.0, CONFIG_YAML, MAP_YAML, effective_config=stale)
+    with pytest.raises(ConfigError, match=r"stale.mcap:/config: chassis: unknown key\(s\): gear_ratio"):
+        RecordingReader(tmp_path / "stale.mcap").robot_config()
 
 
 def test_segments_of_another_run_are_not_mixed_in(tmp_path):
@@ -310,7 +378,7 @@ def test_reader_errors_name_the_file(tmp_path):
 
 def test_bad_messages_are_bugs_not_disk_trouble(tmp_path):
     with unlimited(tmp_path / "run.mcap") as rec:
-        with pytest.raises(ValueError, match="wheel_speeds"):
+        with pytest.raises(ValueError, match="vy"):
             rec.write_cmd(0.0, {"vx": 0.1})
         bad = DepthFrame("front", np.zeros((4, 4), np.float32), 0.001, np.eye(3))
         with pytest.raises(ValueError, match="uint16"):
@@ -390,6 +458,111 @@ def test_background_recorder_drops_rather_than_blocks():
 
 
 def test_schema_lookup():
-    assert ms.schema_for("/depth/left")[0] == "foxglove.CompressedImage"
+    assert ms.schema_for("/depth/left")[0] == "foxglove.RawImage"
+    assert ms.schema_for("/roi/left")[0] == "foxglove.CompressedImage"
     with pytest.raises(ValueError):
         ms.schema_for("/depth/")
+    # one registry: every topic a sink publishes has a schema, and every schema has a publisher
+    published = set(ms.RECORDED_TOPICS) | set(ms.LIVE_TOPICS)
+    assert published == set(ms.SCHEMAS) | set(ms.PREFIX_SCHEMAS)
+    for topic in published:
+        name, body = ms.schema_for(topic + "front" if topic.endswith("/") else topic)
+        assert body["title"] == name and set(body["required"]) <= set(body["properties"]), topic
+
+
+# Depth as Foxglove sees it, its bandwidth budget, ROI images, and the clock  ----------------------
+
+def test_depth_is_a_16uc1_raw_image_and_decimation_keeps_the_geometry():
+    rng = np.random.default_rng(11)
+    f = frame(rng, "front", 0)
+    msg = ms.encode_depth(f)
+    assert (msg["encoding"], msg["width"], msg["height"], msg["step"]) == ("16UC1", 848, 480, 2 * 848)
+    assert msg["frame_id"] == "front_optical_frame" and msg["decimation"] == 1
+    raw = np.frombuffer(base64.b64decode(msg["data"]), dtype="<u2").reshape(480, 848)
+    assert np.array_equal(raw, f.depth)  # what Foxglove's Image panel colour-maps: the depth units themselves
+    assert len(ms.dumps(msg)) <= ms.depth_message_bytes(848, 480)  # what the budget charges covers it
+    half = ms.decode_depth(ms.encode_depth(f, decimation=2))
+    assert half.depth.shape == (240, 424) and np.array_equal(half.depth, f.depth[::2, ::2])
+    # a point seen at pixel (2u, 2v) of the camera is at (u, v) of the decimated image
+    p = np.array([0.3, -0.2, 1.7])
+    uv_full = (f.K @ p)[:2] / p[2]
+    uv_half = (half.K @ p)[:2] / p[2]
+    np.testing.assert_allclose(uv_half, uv_full / 2)
+
+
+def test_depth_recorded_before_as_16_bit_png_still_reads_back():
+    import cv2
+
+    rng = np.random.default_rng(12)
+    f = frame(rng, "left", 3, width=212, height=120)
+    ok, png = cv2.imencode(".png", f.depth)
+    old = {"format": "png", "data": base64.b64encode(png.tobytes()).decode(), "camera": "left", "width": 212,
+           "height": 120, "K": f.K.reshape(9).tolist(), "depth_scale": 0.001, "t_capture": f.t_capture,
+           "frame_number": f.frame_number}
+    back = ms.decode_depth(old)
+    assert np.array_equal(back.depth, f.depth) and back.frame_number == f.frame_number
+    bad = ms.encode_depth(f)
+    bad["data"] = bad["data"][:-8]
+    with pytest.raises(ValueError, match="malformed depth message"):
+        ms.decode_depth(bad)
+
+
+def test_the_depth_budget_skips_whole_frames_and_keeps_the_rest_bit_exact(tmp_path):
+    rng = np.random.default_rng(13)
+    frames = [frame(rng, "front", i, width=212, height=120) for i in range(60)]  # 2 s at 30 fps
+    size = ms.depth_message_bytes(212, 120)
+    mbit_s = 2.0  # 250 kB/s: about 3.6 of these 68 kB frames per second
+    path = tmp_path / "run.mcap"
+    with unlimited(path) as rec:
+        rec.set_depth_budget(mbit_s)
+        written = [rec.write_depth(f.t_capture, f) for f in frames]
+    kept = [f for f, w in zip(frames, written) if w]
+    assert rec.depth_skipped == len(frames) - len(kept)
+    # within the rate over the run plus the one second the bucket holds, and not starved either
+    duration = frames[-1].t_capture - frames[0].t_capture
+    assert len(kept) * size <= mbit_s * 1e6 / 8 * (duration + 1.0)
+    assert len(kept) >= int(mbit_s * 1e6 / 8 * duration / size)
+    got = [m.message for m in read_recording(path) if m.topic == "/depth/front"]
+    assert [d.frame_number for d in got] == [f.frame_number for f in kept]
+    assert all(np.array_equal(d.depth, f.depth) for d, f in zip(got, kept))
+    # behind the worker thread the same frames pass: the budget runs on the frames' times, not the machine's
+    with BackgroundRecorder(unlimited(tmp_path / "bg.mcap")) as bg:
+        bg.set_depth_budget(mbit_s)
+        assert [bg.write_depth(f.t_capture, f) for f in frames] == written  # refused before taking a queue place
+    assert bg.depth_skipped == rec.depth_skipped
+    with unlimited(tmp_path / "none.mcap") as rec:
+        rec.set_depth_budget(0.0)  # no depth at all
+        assert not any(rec.write_depth(f.t_capture, f) for f in frames[:5])
+        rec.set_depth_budget(None)  # no cap
+        assert all(rec.write_depth(f.t_capture, f) for f in frames[:5])
+
+
+def test_roi_images_are_recorded_at_most_a_few_per_second_per_camera(tmp_path):
+    label = np.full((120, 212), -1, np.int32)
+    label[20:80, 30:150] = 2
+    path = tmp_path / "run.mcap"
+    with BackgroundRecorder(unlimited(path)) as rec:
+        for i in range(60):  # 2 s at 30 fps, two cameras
+            for cam in ("front", "left"):
+                rec.write_roi(i / 30, cam, label)
+    got = [m for m in read_recording(path) if m.topic.startswith("/roi/")]
+    for cam in ("front", "left"):
+        times = [m.message["t"] for m in got if m.topic == "/roi/" + cam]
+        assert 2 * ms.ROI_MAX_HZ - 1 <= len(times) <= 2 * ms.ROI_MAX_HZ + 1
+        assert min(b - a for a, b in zip(times, times[1:])) >= 1.0 / ms.ROI_MAX_HZ - 1e-9
+    assert got[0].message["format"] == "png" and got[0].message["frame_id"].endswith("_optical_frame")
+
+
+def test_a_recording_without_a_clock_offset_is_read_as_monotonic_time(tmp_path):
+    from mcap.writer import Writer
+
+    path = tmp_path / "old.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        schema = w.register_schema("robot.Status", "jsonschema", ms.schema_text("/status").encode())
+        chan = w.register_channel("/status", "json", schema)
+        w.add_message(chan, log_time=7_250_000_000, data=b'{"t": 7.25}', publish_time=7_250_000_000)
+        w.finish()
+    (m,) = read_recording(path)
+    assert m.t == 7.25 and m.clock_offset_ns == 0

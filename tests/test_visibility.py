@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from robot.config import load_robot_config
 from robot.localization.visible_planes import visible_planes
 from robot.maps.plane_map import PlaneMap, make_plane
-from robot.maps.visibility import Region, classify_points, clip_polygon, extended_image_coords, frustum_planes
+from robot.maps.visibility import Region, classify_points, clip_polygon, clip_vertex_list, extended_image_coords, frustum_planes
 
 HFOV, VFOV = math.radians(87), math.radians(58)
 
@@ -54,6 +55,53 @@ def test_clip_polygon_behind_and_beside():
     crossing = np.array([[-0.1, 0, -1.0], [0.1, 0, -1.0], [0.1, 0, 2.0], [-0.1, 0, 2.0]], float)
     c = clip_polygon(crossing, fr)
     assert c is not None and c[:, 2].min() >= 0.01 - 1e-9
+
+
+def _area_xy(poly):
+    x, y = np.asarray(poly)[:, 0], np.asarray(poly)[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def test_clip_keeps_the_right_part_of_a_concave_wall_with_a_doorway():
+    # A 4 m x 2 m wall 2 m ahead with a 1 m x 1 m doorway cut from its bottom edge: a U-shaped
+    # polygon. The half-space x >= 0 keeps the right half: 2 m x 2 m less half the doorway.
+    wall = [[-2.0, -1.0, 2.0], [2.0, -1.0, 2.0], [2.0, 1.0, 2.0], [0.5, 1.0, 2.0],
+            [0.5, 0.0, 2.0], [-0.5, 0.0, 2.0], [-0.5, 1.0, 2.0], [-2.0, 1.0, 2.0]]
+    right = clip_vertex_list(wall, [[1.0, 0.0, 0.0, 0.0]])
+    assert right is not None and min(p[0] for p in right) >= 0.0
+    assert _area_xy(right) == pytest.approx(4.0 - 0.5)
+    assert np.allclose(clip_polygon(np.array(wall), np.array([[1.0, 0.0, 0.0, 0.0]])), right)
+    # Both half-spaces 0 <= x <= 0.25 run through the doorway: only the wall above it is left.
+    strip = clip_vertex_list(wall, [[1.0, 0.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.25]])
+    assert _area_xy(strip) == pytest.approx(0.25 * 1.0)
+
+
+def test_clip_leaves_a_polygon_inside_the_view_as_it_is():
+    K, w, h = _K()
+    inside = np.array([[-0.2, -0.1, 2.0], [0.2, -0.1, 2.0], [0.2, 0.1, 2.0]])
+    assert np.array_equal(clip_polygon(inside, frustum_planes(K, w, h)), inside)
+    assert clip_vertex_list(inside.tolist(), frustum_planes(K, w, h).tolist()) == inside.tolist()
+
+
+def test_clipping_against_only_the_crossed_planes_is_the_full_clip():
+    # What predict_plane_views relies on: planes no vertex is outside of change nothing.
+    K, w, h = _K()
+    fr = frustum_planes(K, w, h)
+    rng = np.random.default_rng(3)
+    clipped_some = 0
+    for _ in range(300):
+        centre = rng.uniform([-3.0, -2.0, -1.0], [3.0, 2.0, 6.0])
+        quad = centre + rng.normal(0.0, 1.5, (4, 3))
+        outside = (quad @ fr[:, :3].T + fr[:, 3] < 0).any(axis=0)
+        full = clip_vertex_list(quad.tolist(), fr.tolist())
+        some = clip_vertex_list(quad.tolist(), fr[outside].tolist())
+        assert (full is None) == (some is None)
+        if full is None:
+            continue
+        assert np.allclose(full, some, atol=1e-12)
+        assert (np.asarray(full) @ fr[:, :3].T + fr[:, 3] >= -1e-9).all()
+        clipped_some += bool(outside.any())
+    assert clipped_some > 30
 
 
 def test_robot_close_to_a_large_wall_sees_it():

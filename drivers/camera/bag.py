@@ -1,4 +1,7 @@
-"""librealsense recordings (``.bag``) written from simulation, and read back.
+"""librealsense recordings (``.bag``): played back as a camera, written from simulation, read back.
+
+``BagCamera`` is the recording behind the ``CameraDriver`` interface: the RealSense driver
+itself, reading the file through ``rs.pipeline`` exactly as it streams a camera.
 
 The writer builds an ``rs.software_device`` that looks like a D435i (a "Stereo Module" with a
 z16 depth stream carrying the frames' intrinsics and depth units, and, with IMU samples, a
@@ -21,19 +24,39 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional, Sequence, Tuple
+from typing import Iterator, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from drivers.camera.realsense import domain_name, intrinsics_to_K, load_pyrealsense2
+from drivers.camera.realsense import PlaybackFile, RealSenseCamera, domain_name, intrinsics_to_K, load_pyrealsense2
 from robot.base.errors import DriverError, InputError
 from robot.base.samples import DepthFrame, ImuSample
+from robot.config import CameraConfig
 
 DEVICE_NAME = "Intel RealSense D435I"  # what the Viewer and ``robotctl cameras`` show
 DEPTH_SENSOR_NAME = "Stereo Module"  # the real D435i's sensor names
 MOTION_SENSOR_NAME = "Motion Module"
 IMU_FPS = 200
 STEREO_BASELINE_MM = 50.0  # D435i; lets librealsense's disparity transform work on the recording
+
+
+class BagCamera(RealSenseCamera):
+    """A ``.bag`` recording of one camera, played back as that camera (``camera`` is its config:
+    the stream's size and rate must match the recording's).
+
+    Non-real-time by default: every frame is delivered, at the consumer's pace, and ``wait_ended``
+    tells when the whole file has been. ``real_time`` plays a recording written at its own pace
+    like a live camera (frames dropped when the consumer is slow); ``repeat`` loops it.
+    """
+
+    def __init__(self, camera: CameraConfig, path, repeat: bool = False, real_time: bool = False):
+        p = Path(path)
+        if p.suffix != ".bag":
+            raise InputError(f"camera '{camera.name}': {p}: a recording to play back must be a librealsense .bag")
+        if not p.is_file():
+            raise InputError(f"camera '{camera.name}': recording {p} not found")
+        super().__init__(camera, PlaybackFile(p, repeat=repeat, real_time=real_time))
+        self.path = str(p)
 
 
 @dataclass
@@ -108,112 +131,181 @@ def write_recording(path, frames: Sequence[DepthFrame], imu: Sequence[ImuSample]
     fast as possible and must be played non-real-time (what the driver does with recordings).
     """
     rs = load_pyrealsense2()
+    p = _bag_path(path)
+    stream = _stream_of(frames, fps)
+    ts_frames, ts_imu = _timestamps_ms(frames, imu, stream.fps)
+    numbers = _frame_numbers(frames)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    device = _SoftwareD435i(rs, stream, name, serial, with_imu=bool(imu))
+    recorder = _open_recorder(rs, p, device, compress)
+    device.start()
+    try:
+        for ts, kind, i in _events(ts_frames, ts_imu, real_time):
+            if kind == _DEPTH:
+                device.push_depth(frames[i], ts, numbers[i])
+            else:
+                device.push_imu(imu[i], ts)
+    finally:
+        device.stop()
+        recorder.pause()
+        del recorder  # the file is complete only once the recorder is destroyed
+    return _as_written(p, frames, stream, ts_frames, numbers, name, serial)
+
+
+@dataclass(frozen=True)
+class _Stream:
+    """The one depth stream a recording holds."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    depth_scale: float
+    fps: int
+
+
+_DEPTH, _IMU = 0, 1
+
+
+def _bag_path(path) -> Path:
     p = Path(path)
     if p.suffix != ".bag":
         raise InputError(f"{p}: a librealsense 2.55 recording must end in .bag")
+    return p
+
+
+def _stream_of(frames: Sequence[DepthFrame], fps: Optional[float]) -> _Stream:
+    """The frames' common geometry, and the rate: ``fps``, else their median rate, else 30."""
     w, h, K, depth_scale = _check_frames(frames)
     if fps is None:
-        t = np.array([f.t_capture for f in frames], float)
-        dt = np.diff(t)
+        dt = np.diff(np.array([f.t_capture for f in frames], float))
         fps = 1.0 / float(np.median(dt)) if len(dt) and np.all(dt > 0) else 30.0
-    fps_int = max(1, int(round(fps)))
-    ts_frames, ts_imu = _timestamps_ms(frames, imu, fps_int)
-    fns = [f.frame_number for f in frames]
-    if not all(b > a for a, b in zip(fns, fns[1:])):
-        fns = list(range(len(frames)))
-    p.parent.mkdir(parents=True, exist_ok=True)
+    return _Stream(w, h, K, depth_scale, max(1, int(round(fps))))
 
-    dev = rs.software_device()
-    dev.register_info(rs.camera_info.name, name)
-    dev.register_info(rs.camera_info.serial_number, str(serial))
-    dev.register_info(rs.camera_info.firmware_version, "simulated")
-    dev.register_info(rs.camera_info.product_line, "D400")
-    depth_sensor = dev.add_sensor(DEPTH_SENSOR_NAME)
-    intr = rs.intrinsics()
-    intr.width, intr.height = w, h
-    intr.fx, intr.fy, intr.ppx, intr.ppy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-    intr.model = rs.distortion.brown_conrady
-    intr.coeffs = [0.0] * 5
-    vs = rs.video_stream()
-    vs.type, vs.index, vs.uid = rs.stream.depth, 0, 0
-    vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = w, h, fps_int, 2, rs.format.z16
-    vs.intrinsics = intr
-    depth_profile = depth_sensor.add_video_stream(vs, True).as_video_stream_profile()
-    depth_sensor.add_read_only_option(rs.option.depth_units, depth_scale)
-    depth_sensor.add_read_only_option(rs.option.stereo_baseline, STEREO_BASELINE_MM)
 
-    motion_sensor = None
-    motion_profiles = {}
-    if imu:
-        motion_sensor = dev.add_sensor(MOTION_SENSOR_NAME)
-        for uid, (key, stream) in enumerate((("gyro", rs.stream.gyro), ("accel", rs.stream.accel)), start=1):
+def _frame_numbers(frames: Sequence[DepthFrame]) -> List[int]:
+    """The frames' own numbers when they increase, else 0, 1, 2, ..."""
+    fns = [int(f.frame_number) for f in frames]
+    return fns if all(b > a for a, b in zip(fns, fns[1:])) else list(range(len(frames)))
+
+
+def _events(ts_frames: np.ndarray, ts_imu: np.ndarray, real_time: bool) -> Iterator[Tuple[float, int, int]]:
+    """(timestamp ms, kind, index) of every frame and IMU sample in time order; with ``real_time``
+    each is held back until its own time has come on the wall clock."""
+    events = sorted([(float(ts), _DEPTH, i) for i, ts in enumerate(ts_frames)]
+                    + [(float(ts), _IMU, i) for i, ts in enumerate(ts_imu)])
+    wall0 = time.monotonic()
+    for event in events:
+        if real_time:
+            ahead = wall0 + event[0] / 1000.0 - time.monotonic()
+            if ahead > 0:
+                time.sleep(ahead)
+        yield event
+
+
+class _SoftwareD435i:
+    """An ``rs.software_device`` that looks like a D435i: a "Stereo Module" with one z16 depth
+    stream carrying the intrinsics and depth units and, with IMU, a "Motion Module" with gyro
+    and accel streams. Frames pushed into its sensors are what a recorder attached to it writes."""
+
+    def __init__(self, rs, stream: _Stream, name: str, serial: str, with_imu: bool):
+        self.rs = rs
+        self.stream = stream
+        self.dev = dev = rs.software_device()
+        dev.register_info(rs.camera_info.name, name)
+        dev.register_info(rs.camera_info.serial_number, str(serial))
+        dev.register_info(rs.camera_info.firmware_version, "simulated")
+        dev.register_info(rs.camera_info.product_line, "D400")
+        self.depth_sensor = dev.add_sensor(DEPTH_SENSOR_NAME)
+        self.depth_profile = self._add_depth_stream()
+        self.depth_sensor.add_read_only_option(rs.option.depth_units, stream.depth_scale)
+        self.depth_sensor.add_read_only_option(rs.option.stereo_baseline, STEREO_BASELINE_MM)
+        self.motion_sensor = dev.add_sensor(MOTION_SENSOR_NAME) if with_imu else None
+        self.motion_profiles = self._add_motion_streams() if with_imu else {}
+        self._imu_counters = {"gyro": 0, "accel": 0}
+        self._sink = None
+
+    def _add_depth_stream(self):
+        rs, s = self.rs, self.stream
+        intr = rs.intrinsics()
+        intr.width, intr.height = s.width, s.height
+        intr.fx, intr.fy, intr.ppx, intr.ppy = float(s.K[0, 0]), float(s.K[1, 1]), float(s.K[0, 2]), float(s.K[1, 2])
+        intr.model = rs.distortion.brown_conrady
+        intr.coeffs = [0.0] * 5
+        vs = rs.video_stream()
+        vs.type, vs.index, vs.uid = rs.stream.depth, 0, 0
+        vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = s.width, s.height, s.fps, 2, rs.format.z16
+        vs.intrinsics = intr
+        return self.depth_sensor.add_video_stream(vs, True).as_video_stream_profile()
+
+    def _add_motion_streams(self):
+        rs = self.rs
+        profiles = {}
+        for uid, (key, kind) in enumerate((("gyro", rs.stream.gyro), ("accel", rs.stream.accel)), start=1):
             ms = rs.motion_stream()
-            ms.type, ms.index, ms.uid, ms.fps, ms.fmt = stream, 0, uid, IMU_FPS, rs.format.motion_xyz32f
+            ms.type, ms.index, ms.uid, ms.fps, ms.fmt = kind, 0, uid, IMU_FPS, rs.format.motion_xyz32f
             ms.intrinsics = rs.motion_device_intrinsic()
-            motion_profiles[key] = motion_sensor.add_motion_stream(ms, True).as_motion_stream_profile()
+            profiles[key] = self.motion_sensor.add_motion_stream(ms, True).as_motion_stream_profile()
+        return profiles
 
+    def start(self) -> None:
+        self._sink = self.rs.frame_queue(1)  # the recorder taps the sensors; the frames themselves go nowhere
+        self.depth_sensor.open(self.depth_profile)
+        self.depth_sensor.start(self._sink)
+        if self.motion_sensor is not None:
+            self.motion_sensor.open(list(self.motion_profiles.values()))
+            self.motion_sensor.start(self._sink)
+
+    def push_depth(self, frame: DepthFrame, ts_ms: float, number: int) -> None:
+        rs = self.rs
+        sw = rs.software_video_frame()
+        sw.pixels = np.ascontiguousarray(frame.depth)
+        sw.bpp, sw.stride = 2, 2 * self.stream.width
+        sw.timestamp = ts_ms
+        sw.domain = rs.timestamp_domain.hardware_clock
+        sw.frame_number = int(number)
+        sw.profile = self.depth_profile
+        sw.depth_units = self.stream.depth_scale
+        self.depth_sensor.on_video_frame(sw)
+
+    def push_imu(self, sample: ImuSample, ts_ms: float) -> None:
+        rs = self.rs
+        for key, vec in (("gyro", sample.gyro), ("accel", sample.accel)):
+            if vec is None:
+                continue
+            v = rs.vector()
+            v.x, v.y, v.z = (float(c) for c in vec)
+            mf = rs.software_motion_frame()
+            mf.data = v
+            mf.timestamp = ts_ms
+            mf.domain = rs.timestamp_domain.hardware_clock
+            mf.frame_number = self._imu_counters[key]
+            mf.profile = self.motion_profiles[key]
+            self.motion_sensor.on_motion_frame(mf)
+            self._imu_counters[key] += 1
+
+    def stop(self) -> None:
+        for sensor in (self.depth_sensor, self.motion_sensor):
+            if sensor is not None:
+                sensor.stop()
+                sensor.close()
+
+
+def _open_recorder(rs, p: Path, device: _SoftwareD435i, compress: bool):
     try:
-        recorder = rs.recorder(str(p), dev, compress)
+        return rs.recorder(str(p), device.dev, compress)
     except RuntimeError as e:
         raise DriverError(f"{p}: cannot record with pyrealsense2 {_version()}: {e} "
                           f"(the robot's 2.55 writes .bag; 2.58+ writes only .db3)") from None
-    sink = rs.frame_queue(1)  # the recorder taps the sensors; the frames themselves go nowhere
-    depth_sensor.open(depth_profile)
-    depth_sensor.start(sink)
-    if motion_sensor is not None:
-        motion_sensor.open(list(motion_profiles.values()))
-        motion_sensor.start(sink)
 
-    events = [(float(ts), 0, i) for i, ts in enumerate(ts_frames)]
-    events += [(float(ts), 1, i) for i, ts in enumerate(ts_imu)]
-    events.sort()
-    imu_counters = {"gyro": 0, "accel": 0}
-    wall0 = time.monotonic()
-    try:
-        for ts, kind, i in events:
-            if real_time:
-                ahead = wall0 + ts / 1000.0 - time.monotonic()
-                if ahead > 0:
-                    time.sleep(ahead)
-            if kind == 0:
-                f = frames[i]
-                sw = rs.software_video_frame()
-                sw.pixels = np.ascontiguousarray(f.depth)
-                sw.bpp, sw.stride = 2, 2 * w
-                sw.timestamp = ts
-                sw.domain = rs.timestamp_domain.hardware_clock
-                sw.frame_number = int(fns[i])
-                sw.profile = depth_profile
-                sw.depth_units = depth_scale
-                depth_sensor.on_video_frame(sw)
-                continue
-            s = imu[i]
-            for key, vec in (("gyro", s.gyro), ("accel", s.accel)):
-                if vec is None:
-                    continue
-                v = rs.vector()
-                v.x, v.y, v.z = (float(c) for c in vec)
-                mf = rs.software_motion_frame()
-                mf.data = v
-                mf.timestamp = ts
-                mf.domain = rs.timestamp_domain.hardware_clock
-                mf.frame_number = imu_counters[key]
-                mf.profile = motion_profiles[key]
-                motion_sensor.on_motion_frame(mf)
-                imu_counters[key] += 1
-    finally:
-        for sensor in (depth_sensor, motion_sensor):
-            if sensor is None:
-                continue
-            sensor.stop()
-            sensor.close()
-        recorder.pause()
-        del recorder  # the file is complete only once the recorder is destroyed
-    rec = Recording(path=str(p), name=name, serial=str(serial), fps=fps_int, width=w, height=h, K=K,
-                    depth_scale=depth_scale)
-    rec.frames = [DepthFrame(camera=f.camera, depth=f.depth, depth_scale=depth_scale, K=K, t_capture=ts / 1000.0,
-                             frame_number=int(fn), timestamp_domain="hardware_clock", truth=f.truth)
-                  for f, ts, fn in zip(frames, ts_frames, fns)]
+
+def _as_written(p: Path, frames: Sequence[DepthFrame], stream: _Stream, ts_frames: np.ndarray, numbers: List[int],
+                name: str, serial: str) -> Recording:
+    rec = Recording(path=str(p), name=name, serial=str(serial), fps=stream.fps, width=stream.width,
+                    height=stream.height, K=stream.K, depth_scale=stream.depth_scale)
+    rec.frames = [DepthFrame(camera=f.camera, depth=f.depth, depth_scale=stream.depth_scale, K=stream.K,
+                             t_capture=ts / 1000.0, frame_number=int(fn), timestamp_domain="hardware_clock",
+                             truth=f.truth)
+                  for f, ts, fn in zip(frames, ts_frames, numbers)]
     return rec
 
 

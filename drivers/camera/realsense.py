@@ -11,6 +11,10 @@ What it does, and why:
 - **Newest frame wins.** On a live camera the capture thread drains the pipeline's queue and
   hands on the newest frame; skipped frames show up as frame-number gaps and are counted as
   ``drops``, never queued. (A recording plays back non-real-time, so nothing is skipped.)
+- **Never the same frame twice.** librealsense can hand the same frameset over again (seen
+  after a stream restart under load, and known from bag playback): a frame whose number and
+  device time are not after the last one delivered in this session is counted as a
+  ``duplicates`` and dropped, unless its clock went back far enough to be a device restart.
 - **Timestamps** are the camera's (hardware clock, or librealsense's global time) mapped to the
   host's ``time.monotonic()`` by :class:`ClockMapper`, with the timestamp domain kept per frame.
 - **Faults** become states for the app's health supervision, and the driver recovers by itself:
@@ -25,7 +29,8 @@ What it does, and why:
 
 The device comes from an injectable source: :class:`LiveDevice` (by serial number, or the only
 camera present) on the robot, :class:`PlaybackFile` (a librealsense ``.bag`` recording, played
-back non-real-time through the same ``rs.pipeline``) in tests and benchmarks.
+back non-real-time through the same ``rs.pipeline``; ``drivers.camera.bag.BagCamera`` is this
+driver on one) in tests, benchmarks and replays.
 
 pyrealsense2 is imported lazily so that the rest of the project works where it is missing.
 """
@@ -348,19 +353,18 @@ class RealSenseCamera(CameraDriver):
     FIRST_FRAME_TIMEOUT_MS = 5000  # a camera just started may take seconds to deliver its first frame
 
     def __init__(self, camera: CameraConfig, source: Optional[DeviceSource] = None):
-        super().__init__(camera.name)
-        self.camera = camera
+        super().__init__(camera)
         self.config: RealSenseConfig = camera.realsense
         self.config.validate(f"camera '{camera.name}': realsense")
         self.source = source if source is not None else LiveDevice(camera.serial)
-        self.stats.update({"drops": 0, "resets": 0, "imu": 0, "imu_drops": 0, "imu_errors": 0})
+        self.stats.update({"drops": 0, "duplicates": 0, "resets": 0, "imu": 0, "imu_drops": 0, "imu_errors": 0})
         self.cpu_time = 0.0
         self.last_error: Optional[str] = None
         self.intrinsics: Optional[np.ndarray] = None
         self.depth_scale: Optional[float] = None
         self.device_info: Dict[str, str] = {}
         # IMU frame -> depth optical frame: the device's gyro extrinsics once the IMU streams
-        self.T_camera_imu: np.ndarray = D435I_T_CAMERA_IMU.copy()
+        self.T_camera_imu = D435I_T_CAMERA_IMU.copy()
         self.imu_extrinsics_source = "default"  # or "device"
         self.clock = ClockMapper(self.config.clock_window)
         self.ended = threading.Event()  # set when a recording played to its end
@@ -372,16 +376,12 @@ class RealSenseCamera(CameraDriver):
         self._on_imu: Optional[ImuCallback] = None
         self._session: Optional[_Session] = None
         self._last_fn: Optional[int] = None
+        self._last_t_dev = 0.0  # device time (s) of the last frame delivered in this session
         self._imu_last_fn: Dict[str, int] = {}
         self._filters: List[Tuple[str, Any]] = []
         self._logged: set = set()
 
     # ---- public ------------------------------------------------------------------------------
-
-    @property
-    def T_robot_imu(self) -> np.ndarray:
-        """The camera's IMU frame -> robot frame, for ``yaw_rate_robot`` of this camera's gyro."""
-        return self.camera.T_robot_camera @ self.T_camera_imu
 
     @property
     def device(self):
@@ -391,7 +391,7 @@ class RealSenseCamera(CameraDriver):
 
     def start(self, on_frame: FrameCallback, on_imu: Optional[ImuCallback] = None) -> None:
         if self._thread is not None and self._thread.is_alive():
-            raise DriverError(f"camera '{self.name}': already started")
+            return
         self._rs = load_pyrealsense2()
         self._on_frame = on_frame
         self._on_imu = on_imu
@@ -561,12 +561,15 @@ class RealSenseCamera(CameraDriver):
         d = fs.get_depth_frame()
         if not d:
             return None
+        fn = int(d.get_frame_number())
+        t_dev = d.get_timestamp() / 1000.0
+        if self._repeats(fn, t_dev):
+            self.stats["duplicates"] += 1
+            return None
         f = d
         for _name, flt in self._filters:
             f = flt.process(f)
         depth_frame = f.as_depth_frame()
-        fn = int(d.get_frame_number())
-        t_dev = d.get_timestamp() / 1000.0
         dom = domain_name(self._rs, d.get_frame_timestamp_domain())
         scale = float(depth_frame.get_units())
         intr = depth_frame.get_profile().as_video_stream_profile().get_intrinsics()
@@ -576,10 +579,17 @@ class RealSenseCamera(CameraDriver):
             gap = fn - self._last_fn - 1
             if gap > 0:
                 self.stats["drops"] += gap
-        self._last_fn = fn
+        self._last_fn, self._last_t_dev = fn, t_dev
         return DepthFrame(camera=self.name, depth=depth, depth_scale=scale, K=intrinsics_to_K(intr),
                           t_capture=self.clock.map("depth", t_dev, arrival, dom), frame_number=fn,
                           timestamp_domain=dom)
+
+    def _repeats(self, fn: int, t_dev: float) -> bool:
+        """A frame already delivered in this session (or an older one) handed over again."""
+        if self._last_fn is None:
+            return False
+        restarted = t_dev < self._last_t_dev - ClockMapper.JUMP_BACK  # the device's clock started again
+        return fn <= self._last_fn and t_dev <= self._last_t_dev and not restarted
 
     def _deliver(self, frame: DepthFrame) -> None:
         self.stats["frames"] += 1

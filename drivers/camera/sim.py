@@ -1,4 +1,4 @@
-"""A fake depth camera for real-time simulation: same interface as the RealSense driver.
+"""A fake depth camera for real-time simulation: the ``CameraDriver`` interface, like the RealSense driver.
 
 Its capture thread renders the simulated world at the robot's true pose (read from the
 firmware emulator) at the configured rate, stamps each frame with host monotonic time at
@@ -30,7 +30,7 @@ class SimCamera(CameraDriver):
                  fps: Optional[float] = None, decimation: int = 1, noise: Optional[DepthNoise] = DepthNoise(),
                  seed: int = 0, timeout: float = 0.5, cache: int = 0, imu_rate: float = 0.0,
                  gyro_noise: float = 0.0035):
-        super().__init__(camera)
+        super().__init__(robot.camera(camera))
         import numpy as np
 
         self.robot = robot
@@ -52,8 +52,8 @@ class SimCamera(CameraDriver):
         self.imu_rate = float(imu_rate)  # Hz of simulated gyro samples (0: no IMU, like imu_enabled: false)
         self.gyro_noise = float(gyro_noise)  # rad/s white noise per sample (BMI055 at 200 Hz)
         self._imu_thread: Optional[threading.Thread] = None
-        # librealsense gives IMU samples in the depth optical axes; the simulated IMU sits at the optical origin
-        self.T_robot_imu = robot.camera(camera).T_robot_camera
+        # librealsense gives IMU samples in the depth optical axes; the simulated IMU sits at the
+        # optical origin, so the base's identity T_camera_imu holds
 
     # -- faults ---------------------------------------------------------------------------------
 

@@ -2,7 +2,8 @@
 
 Backends: ``serial_chassis.SerialChassis`` (the real board over a serial port, or the pty
 emulator) and ``loopback.LoopbackChassis`` (the same protocol bytes to the board model on a
-simulated clock). The app and the bench tools take a ``Chassis``; one contract suite
+simulated clock); both speak through ``session.HostSession``. The app and the bench tools take a
+``Chassis`` (``robot.app.assemble`` builds one by name); one contract suite
 (``tests/contract/test_chassis_contract.py``) runs over every backend.
 """
 
@@ -14,7 +15,8 @@ import enum
 from dataclasses import dataclass
 from typing import Dict, Optional, Sequence, Tuple
 
-from firmware_protocol import Status, StatusFlag
+from drivers.chassis.encoders import merge_odometry
+from firmware_protocol import HelloReply, Status, StatusFlag
 
 
 class LinkState(enum.Enum):
@@ -47,12 +49,34 @@ class ChassisStatus:
                    no_session=bool(f & StatusFlag.NO_SESSION), board_rx_errors=m.rx_errors)
 
 
+class OdometryQueue(asyncio.Queue):
+    """The queue ``Chassis.odometry_queue`` returns. Full, it merges its two oldest samples instead
+    of dropping one, so a consumer that stalled still gets every tick: the merged sample spans both
+    intervals exactly (``merge_odometry``). ``coalesced`` counts the merges."""
+
+    def __init__(self, maxsize: int = 256):
+        super().__init__()  # unbounded underneath: put never blocks or raises
+        self.limit = max(2, int(maxsize))
+        self.coalesced = 0
+
+    def _put(self, item) -> None:
+        q = self._queue
+        if len(q) >= self.limit:
+            first = q.popleft()
+            q.appendleft(merge_odometry(first, q.popleft()))
+            self.coalesced += 1
+        q.append(item)
+
 
 class Chassis(abc.ABC):
     """A Mecanum motor board: wheel speed commands in, wheel odometry and status out.
 
     Commands are only accepted while ``link_state`` is ``LinkState.READY``; a refused command
     returns False and is never queued (a stale command must not reach the wheels later).
+    ``connect`` raises ``DriverError`` naming the problem; a board that answers but must not be
+    driven (protocol version, ticks per revolution) leaves the link in ``FAULT``. Wheel speeds
+    that are not 4 finite numbers stop the wheels and raise ValueError. ``stop`` returns False
+    when nothing could be sent (not connected, closed). ``close`` sends STOP and is idempotent.
     """
 
     @property
@@ -68,6 +92,11 @@ class Chassis(abc.ABC):
     def max_wheel_speed(self) -> float: ...
 
     @property
+    def board_info(self) -> Optional[HelloReply]:
+        """What the board said about itself in the last handshake (None before one)."""
+        return None
+
+    @property
     def stats(self) -> Dict[str, object]:
         return {}
 
@@ -81,7 +110,8 @@ class Chassis(abc.ABC):
     def stop(self) -> bool: ...
 
     @abc.abstractmethod
-    def odometry_queue(self, maxsize: int = 256) -> asyncio.Queue: ...
+    def odometry_queue(self, maxsize: int = 256) -> asyncio.Queue:
+        """A new ``OdometryQueue`` fed every sample; when full its two oldest samples are merged."""
 
     @abc.abstractmethod
     async def close(self) -> None: ...

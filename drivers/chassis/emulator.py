@@ -432,6 +432,11 @@ class FirmwareEmulator:
         with self._lock:
             return self.board.pose
 
+    def teleport(self, x: float, y: float, phi: float) -> None:
+        """Carry the simulated robot to (x, y, phi) without turning its wheels (a kidnap, for tests)."""
+        with self._lock:
+            self.board.pose = (float(x), float(y), float(phi))  # type: ignore[assignment]
+
     @property
     def true_wheel_speeds(self) -> Tuple[float, ...]:
         with self._lock:

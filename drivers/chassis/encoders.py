@@ -2,6 +2,11 @@
 
 The serial driver and the simulated-clock runner both feed reports through this, so odometry
 means the same thing on the robot and in simulation. Wheel order FL, FR, RL, RR.
+
+No motion is ever lost between reports that arrive: each sample is the difference of cumulative
+ticks since the previous report received, so reports lost on the line only make the next sample
+span longer. Samples that cannot be delivered in time are merged, never dropped
+(``merge_odometry``): the merged sample spans both intervals exactly.
 """
 
 from __future__ import annotations
@@ -58,6 +63,17 @@ class EncoderOdometry:
 
     def speed_variance(self, dt: float) -> float:
         return quantisation_variance(self.ticks_per_rev, dt)
+
+
+def merge_odometry(earlier: WheelOdometry, later: WheelOdometry) -> WheelOdometry:
+    """One sample spanning two consecutive ones: the later's angles and times, the mean speeds over both.
+
+    The cumulative angles make this exact: the start of ``earlier``'s interval is its angles less
+    its speeds times its dt."""
+    dt = earlier.dt + later.dt
+    start = [a - w * earlier.dt for a, w in zip(earlier.angles, earlier.speeds)]
+    speeds = tuple((a - a0) / dt for a, a0 in zip(later.angles, start))
+    return WheelOdometry(t=later.t, angles=later.angles, speeds=speeds, dt=dt, t_board=later.t_board)  # type: ignore[arg-type]
 
 
 def quantisation_variance(ticks_per_rev: int, dt: float) -> float:

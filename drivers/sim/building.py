@@ -4,7 +4,8 @@
 wall face is its own plane (split around its door), as an IFC import would give, so the plane
 count grows as 4 nx ny + 2 (nx + ny) and the visibility cost can be measured from ten planes to
 tens of thousands. ``free_space_poses`` samples robot poses inside any plane map's rooms and
-corridors, away from walls, for benchmarks and tests.
+corridors, away from walls, for benchmarks and tests; ``in_free_space`` tells whether one point
+is such a place.
 """
 
 from __future__ import annotations
@@ -150,6 +151,22 @@ def _enclosed(p: np.ndarray, segs: np.ndarray, normals: np.ndarray, offsets: np.
             return False
         hits += 1
     return hits >= min_hits * rays
+
+
+def in_free_space(plane_map: PlaneMap, xy: Sequence[float], clearance: float = 0.0, z: float = 0.3, rays: int = 24,
+                  max_dist: float = 30.0, min_hits: float = 0.8) -> bool:
+    """Whether the floor point ``xy`` is inside the building (enclosed by walls seen from their
+    front, as for :func:`free_space_poses`) and ``clearance`` from every wall face cut at ``z``."""
+    segs = wall_segments(plane_map, z)
+    if len(segs) == 0:
+        return False
+    d = segs[:, 1] - segs[:, 0]
+    normals = np.column_stack([d[:, 1], -d[:, 0]]) / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)[:, None]
+    offsets = -np.einsum("ij,ij->i", normals, segs[:, 0])
+    p = np.asarray(xy[:2], float)
+    if clearance > 0 and _point_segment_distance(p, segs).min() < clearance:
+        return False
+    return _enclosed(p, segs, normals, offsets, rays, max_dist, min_hits)
 
 
 def free_space_poses(plane_map: PlaneMap, count: int, rng: np.random.Generator, clearance: float = 0.4,

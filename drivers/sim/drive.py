@@ -6,7 +6,7 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from drivers.sim.render import DepthNoise, render_depth_frame
+from drivers.sim.render import render_depth_frame, resolve_noise
 from robot.base.samples import ImuSample
 
 GRAVITY = 9.80665  # m/s^2
@@ -28,7 +28,7 @@ def simulate_run(robot, scene, camera: str, start_pose: Sequence[float], velocit
     fps = float(cam.fps if fps is None else fps)
     rng = rng if rng is not None else np.random.default_rng()
     if isinstance(noise, str):
-        noise = DepthNoise()
+        noise = resolve_noise(noise)  # "default" / "realistic", "simple", "none"
     x0, y0, phi0 = (float(v) for v in start_pose)
     vx, vy, om = (float(v) for v in velocity)
 

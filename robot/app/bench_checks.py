@@ -3,7 +3,9 @@ board handshakes, every wheel follows its command, the board's watchdog stops th
 
 ``robotctl bench`` runs them short (5 s of camera, 2 s per wheel); ``tests/hil`` runs the same
 measurements at full length. Every check ends as a ``CheckResult``: pass, fail (with what was
-measured) or skip (with why: no device, ``--skip-motion``, no handshake).
+measured, or which required device is missing) or skip (with why: ``--skip-cameras``,
+``--skip-motion``, motion not confirmed, no handshake). Before any single wheel turns, a short
+pulse with the wheels working against each other checks that they are not loaded by the floor.
 
 The wheel and watchdog measurements are ``robot.cli.chassis``'s. Against the firmware emulator
 the watchdog is judged on the emulator's own clock: the host's timing there measures the test
@@ -13,7 +15,6 @@ machine's scheduling, not the board.
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import math
 import os
 import time
@@ -22,7 +23,15 @@ from typing import Any, Callable, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from robot.app.chassis_checks import SPEED_TOLERANCE, WATCHDOG_LIMIT, WHEELS, measure_watchdog, measure_wheel
+from robot.app.chassis_checks import (
+    OFF_GROUND_MIN_RATIO,
+    SPEED_TOLERANCE,
+    WATCHDOG_LIMIT,
+    WHEELS,
+    measure_off_ground,
+    measure_watchdog,
+    measure_wheel,
+)
 from robot.base.errors import DriverError
 from robot.config import CameraConfig, ChassisConfig, RobotConfig
 
@@ -60,6 +69,8 @@ class BenchOptions:
     wheel_hold: float = 2.0  # s each wheel turns; the second half is measured
     motion: bool = True  # False: no wheel and watchdog checks (robot not on blocks)
     handshake_listen: float = 0.5  # s of reports and status looked at after the handshake
+    motion_skipped: str = "--skip-motion"  # why, when motion is False
+    cameras: bool = True  # False: the camera checks are skipped (--skip-cameras), else cameras are required
 
 
 def exit_code(results: Sequence[CheckResult]) -> int:
@@ -231,12 +242,19 @@ def judge_intrinsics(m: CameraMeasurement) -> CheckResult:
 
 
 def camera_checks(robot: RobotConfig, opts: BenchOptions) -> List[CheckResult]:
+    """Every configured camera is required: a missing one fails its stream check."""
+    if not opts.cameras:
+        return [CheckResult(f"camera {c.name}: {what}", SKIP, "--skip-cameras") for c in robot.cameras
+                for what in ("stream", "intrinsics")]
     serials, why_not = connected_cameras()
     if why_not is None and not serials:
         why_not = "no RealSense device"
     if why_not is not None:
-        return [CheckResult(f"camera {c.name}: {what}", SKIP, why_not) for c in robot.cameras
-                for what in ("stream", "intrinsics")]
+        out: List[CheckResult] = []
+        for c in robot.cameras:
+            out += [CheckResult(f"camera {c.name}: stream", FAIL, why_not),
+                    CheckResult(f"camera {c.name}: intrinsics", SKIP, "camera not connected")]
+        return out
     matches = match_cameras(robot.cameras, serials)
     usable = [cam for cam, missing in matches if missing is None]
     measured = measure_cameras(usable, opts.camera_seconds, opts.camera_settle) if usable else {}
@@ -285,6 +303,18 @@ def judge_handshake(chassis, samples: list, listen: float) -> CheckResult:
     return CheckResult("chassis: handshake", PASS,
                        f"firmware {data['firmware']}, {b.ticks_per_rev} ticks/rev, watchdog {b.watchdog_ms} ms, "
                        f"reports {report_hz:.0f} Hz, battery {st.battery_v:.1f} V", data)
+
+
+OFF_GROUND = "wheels: off the ground"
+
+
+def judge_off_ground(res: Dict[str, Any]) -> CheckResult:
+    ratios = ", ".join(f"{w} {100 * r:.0f} %" for w, r in zip(WHEELS, res["ratios"]))
+    if res["ok"]:
+        return CheckResult(OFF_GROUND, PASS, f"the wheels turned freely against each other ({ratios} of the "
+                                             f"command); a board that makes up for load would pass too", res)
+    return CheckResult(OFF_GROUND, FAIL, f"the wheels lag their command under load ({ratios}, need "
+                                         f"{100 * OFF_GROUND_MIN_RATIO:.0f} %): put the robot on blocks", res)
 
 
 def judge_wheel(res: Dict[str, Any]) -> CheckResult:
@@ -351,14 +381,15 @@ def _port_absent(port: str) -> bool:
 
 async def chassis_checks(config: ChassisConfig, port: str, opts: BenchOptions, emulator=None,
                          port_required: bool = False) -> List[CheckResult]:
-    """Handshake, then (``opts.motion``) each wheel alone and the board watchdog.
+    """Handshake, then (``opts.motion``) the off-the-ground pulse, each wheel alone and the board watchdog.
 
-    A port that does not exist skips the checks, or fails them when the user named it.
+    The motor board is required: a port that does not exist fails the handshake (``port_required``
+    is kept for callers; the board is always required now).
     """
-    motion_names = [f"wheel {w}" for w in WHEELS] + ["chassis: watchdog"]
+    motion_names = [OFF_GROUND] + [f"wheel {w}" for w in WHEELS] + ["chassis: watchdog"]
     if _port_absent(port):
         why = f"motor board port {port} is absent"
-        first = CheckResult("chassis: handshake", FAIL if port_required else SKIP, why)
+        first = CheckResult("chassis: handshake", FAIL, why)
         return [first] + [CheckResult(n, SKIP, why) for n in motion_names]
     chassis = _serial_chassis(config, port)
     odo = chassis.odometry_queue(maxsize=4096)
@@ -373,12 +404,20 @@ async def chassis_checks(config: ChassisConfig, port: str, opts: BenchOptions, e
         await asyncio.sleep(opts.handshake_listen)
         results.append(judge_handshake(chassis, _drain(odo), opts.handshake_listen))
         if not opts.motion:
-            return results + [CheckResult(n, SKIP, "--skip-motion") for n in motion_names]
+            return results + [CheckResult(n, SKIP, opts.motion_skipped) for n in motion_names]
         refusal = _refusal(chassis.status)
         if refusal:
             # the board refuses every speed command: spinning would only measure zeros
-            return results + [CheckResult(f"wheel {w}", FAIL, f"the board refuses speed commands: {refusal}")
-                              for w in WHEELS] + [CheckResult("chassis: watchdog", SKIP, "cannot drive: " + refusal)]
+            return results + [CheckResult(OFF_GROUND, SKIP, "cannot drive: " + refusal)] + [
+                CheckResult(f"wheel {w}", FAIL, f"the board refuses speed commands: {refusal}")
+                for w in WHEELS] + [CheckResult("chassis: watchdog", SKIP, "cannot drive: " + refusal)]
+        try:
+            lifted = judge_off_ground(await measure_off_ground(chassis, odo))
+        except DriverError as e:
+            lifted = CheckResult(OFF_GROUND, FAIL, str(e))
+        results.append(lifted)
+        if lifted.status == FAIL:  # a loaded wheel would drive the robot off the bench: stop here
+            return results + [CheckResult(n, SKIP, "the wheels seem to be on the floor") for n in motion_names[1:]]
         for i in range(4):
             try:
                 results.append(judge_wheel(await measure_wheel(chassis, odo, i, opts.wheel_speed, opts.wheel_hold)))
@@ -396,30 +435,21 @@ async def chassis_checks(config: ChassisConfig, port: str, opts: BenchOptions, e
 
 
 def _serial_chassis(config: ChassisConfig, port: str):
-    from drivers.chassis.serial_chassis import SerialChassis
+    from robot.app.assemble import build_chassis
 
-    return SerialChassis(config, port=port)
+    return build_chassis("serial", config, port)
 
 
 def run_bench(robot: RobotConfig, opts: BenchOptions, port: Optional[str] = None,
-              emulate: bool = False) -> List[CheckResult]:
-    """All checks in order: cameras, then the chassis (on ``port``, the config's, or an emulator)."""
-    results = camera_checks(robot, opts)
-    cfg = robot.chassis
-    emulator = None
-    if emulate:
-        from drivers.chassis.emulator import FirmwareEmulator
+              chassis_kind: str = "serial") -> List[CheckResult]:
+    """All checks in order: cameras, then the chassis of ``chassis_kind`` ("serial": on ``port``
+    or the config's; "emulator": the firmware emulator)."""
+    from robot.app.assemble import board_port
 
-        # the emulator is a thread on a shared machine, not a microcontroller: give its reports
-        # the slack the driver tests give it, so a scheduling hiccup is not a lost link
-        cfg = dataclasses.replace(cfg, link_timeout=max(cfg.link_timeout, 0.5))
-        emulator = FirmwareEmulator(robot.chassis).start()
-        port = emulator.port
-    try:
-        results += asyncio.run(chassis_checks(cfg, port or cfg.port, opts, emulator, port_required=port is not None))
-    finally:
-        if emulator is not None:
-            emulator.close()
+    results = camera_checks(robot, opts)
+    with board_port(chassis_kind, robot.chassis, port) as board:
+        results += asyncio.run(chassis_checks(board.config, board.port, opts, board.emulator,
+                                              port_required=port is not None))
     return results
 
 
@@ -440,4 +470,4 @@ def _plain(o: Any) -> Any:
 
 __all__ = ["BenchOptions", "CheckResult", "PASS", "FAIL", "SKIP", "run_bench", "camera_checks", "chassis_checks",
            "measure_cameras", "match_cameras", "judge_stream", "judge_intrinsics", "judge_handshake", "judge_wheel",
-           "judge_watchdog", "exit_code", "summary"]
+           "judge_watchdog", "judge_off_ground", "OFF_GROUND", "exit_code", "summary"]

@@ -21,6 +21,12 @@ WHEELS = ("FL", "FR", "RL", "RR")
 SPEED_TOLERANCE = 0.05  # a wheel passes within 5 % of its command, measured by its encoder
 WATCHDOG_LIMIT = 0.25  # s from the last command to the board reporting its watchdog tripped
 COMMAND_PERIOD = 0.02  # s: the bench commands at 50 Hz, like the controller
+# The off-the-ground pulse: front wheels forward, rear wheels backward. No rigid motion has these
+# wheel speeds (w_FL + w_FR = w_RL + w_RR fails), so on the floor the robot stays put while the
+# wheels scrub and lag their command under the load; lifted, they turn freely and follow it.
+OFF_GROUND_SPEED = 1.5  # rad/s: 4.5 cm/s of wheel rim, a scrub, not a drive
+OFF_GROUND_HOLD = 0.6  # s; the second half is measured
+OFF_GROUND_MIN_RATIO = 0.7  # a wheel reaching less than 70 % of its command is loaded
 
 
 async def bench(cfg: ChassisConfig, port: str, duration: float, motion: bool, speed: float, hold: float,
@@ -40,6 +46,14 @@ async def bench(cfg: ChassisConfig, port: str, duration: float, motion: bool, sp
         say(f"board on {port}: firmware {report['board']['firmware']}, {b.ticks_per_rev} ticks/rev, "
             f"max {b.max_speed_mrad_s / 1000:.1f} rad/s, watchdog {b.watchdog_ms} ms")
         report["odometry_hz"] = await _live(chassis, odo, duration, say)
+        if motion:
+            lifted = await measure_off_ground(chassis, odo)
+            report["off_ground"] = lifted
+            say(f"off-the-ground pulse: wheels at {', '.join(f'{100 * r:.0f}' for r in lifted['ratios'])} % "
+                f"of the command  {'ok' if lifted['ok'] else 'LOADED: are the wheels on the floor?'}")
+            if not lifted["ok"]:
+                report["ok"] = False
+                motion = False  # a loaded wheel would drive the robot off the bench
         if motion:
             say(f"test motion: each wheel alone at {speed:.2f} rad/s for {hold:.1f} s (robot on blocks)")
             wheels = []
@@ -129,6 +143,22 @@ async def measure_wheel(chassis: SerialChassis, odo: asyncio.Queue, wheel: int, 
     others = max(abs(v) for i, v in enumerate(mean) if i != wheel)
     return {"wheel": WHEELS[wheel], "command": speed, "measured": mean[wheel], "error_pct": 100.0 * err,
             "others_max": others, "ok": abs(err) <= SPEED_TOLERANCE and others <= SPEED_TOLERANCE * abs(speed)}
+
+
+async def measure_off_ground(chassis: SerialChassis, odo: asyncio.Queue, speed: float = OFF_GROUND_SPEED,
+                             hold: float = OFF_GROUND_HOLD) -> Dict[str, object]:
+    """A short pulse that moves no robot on the floor: do the wheels turn freely (off the ground)?
+
+    A board whose speed control makes up for the load passes while on the floor: this check
+    can tell that the wheels are loaded, not prove that they are lifted.
+    """
+    cmd = [speed, speed, -speed, -speed]
+    _drain(odo)
+    samples = await _command_for(chassis, odo, cmd, hold)
+    await _settle(chassis, odo, 0.3)
+    mean = _mean_speeds(samples)
+    ratios = [m / c for m, c in zip(mean, cmd)]
+    return {"command": cmd, "measured": mean, "ratios": ratios, "ok": min(ratios) >= OFF_GROUND_MIN_RATIO}
 
 
 async def measure_watchdog(chassis: SerialChassis, odo: asyncio.Queue, speed: float) -> Dict[str, object]:

@@ -1,4 +1,4 @@
-"""The controller process: one asyncio event loop around ``ControllerCore`` (DESIGN.md section 1).
+"""The controller process: one asyncio event loop around ``ControllerCore`` (see docs/architecture.md, 'Data flow').
 
 Threads and tasks:
 
@@ -28,25 +28,37 @@ import signal
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence
+from typing import Callable, Dict, List, Optional, Sequence, Union
 
 import numpy as np
 
 from drivers.camera.base import CameraDriver, CameraState
 from drivers.camera.realsense_imu import yaw_rate_robot
+from drivers.chassis.base import Chassis, LinkState
 from drivers.chassis.encoders import quantisation_variance
 from robot.app import sd_notify
+from robot.app.calibration_store import CalibrationStore
+from robot.app.operator import remote_services
 from robot.app.pose_store import PoseStore
 from robot.base.errors import DriverError
+from robot.base.frames import FrameCheck
 from robot.base.samples import DepthFrame
 from robot.config import RobotConfig
+from robot.config.calibration import calibrated_frame
+from robot.config.dump import effective_config_dict
 from robot.control.core import ControllerCore
 from robot.control.path_file import PathPlan
+from robot.fusion.calibration_filter import CalibrationFilter
+from robot.fusion.frames import OdomFrame, camera_mounts
 from robot.localization.localizer import Localizer
 from robot.maps.plane_map import PlaneMap
-from robot.recording import schema as mcap_schema
+from robot.recording import schema as channels
+from robot.recording.live_view import LiveView, NullLiveView
+from robot.recording.recorder import BackgroundRecorder, NullRecorder, Recorder
 
 log = logging.getLogger(__name__)
+
+RECOVERY_POLL = 0.2  # s between looks at whether the recovery supervisor wants a relocalization
 
 # The default 5 ms switch interval lets the localization thread hold the GIL for up to 5 ms
 # between bytecode checks: a whole control-period's jitter budget. 1 ms bounds that wait.
@@ -61,12 +73,13 @@ class AppOptions:
     vision: bool = True
     method: str = "joint"
     status_period: float = 1.0  # s between STATUS= lines / status records
-    pose_save_period: float = 2.0  # s between saves of the last pose
     connect_retry: float = 1.0  # s between chassis connection attempts at start-up
     startup_timeout: Optional[float] = None  # s to wait for the chassis at start (None: forever)
     stop_when_done: bool = True  # end the process when the path is complete
     initial_cov: Sequence[float] = (0.02, 0.02, math.radians(2.0))  # std of a given initial pose
     install_signal_handlers: bool = True
+    remote: bool = False  # serve the config's control socket and fleet link (robot.app.operator)
+    online_calibration: bool = False  # estimate depth scales, mounts and wheel radii while running (fusion.calibration_filter)
 
 
 @dataclass
@@ -83,12 +96,15 @@ class AppStats:
 
 
 class RobotApp:
-    """Wire drivers to the core. ``chassis`` is a ``SerialChassis`` (or the same interface)."""
+    """Wire drivers to the core: any ``CameraDriver``s and ``Chassis`` (``robot.app.assemble`` builds them)."""
 
-    def __init__(self, robot: RobotConfig, plane_map: PlaneMap, cameras: Sequence[CameraDriver], chassis,
+    def __init__(self, robot: RobotConfig, plane_map: PlaneMap, cameras: Sequence[CameraDriver], chassis: Chassis,
                  options: Optional[AppOptions] = None, *, plan: Optional[PathPlan] = None, teleop=None,
                  initial_pose: Optional[Sequence[float]] = None, pose_store: Optional[PoseStore] = None,
-                 recorder=None, live_view=None, on_tick: Optional[Callable[[RobotApp, float], None]] = None):
+                 recorder: Optional[Union[Recorder, BackgroundRecorder, NullRecorder]] = None,
+                 live_view: Optional[Union[LiveView, NullLiveView]] = None,
+                 on_tick: Optional[Callable[[RobotApp, float], None]] = None,
+                 calibration_store: Optional[CalibrationStore] = None):
         self.robot = robot
         self.plane_map = plane_map
         self.cameras = list(cameras)
@@ -98,12 +114,20 @@ class RobotApp:
         self.teleop = teleop
         self.initial_pose = initial_pose
         self.pose_store = pose_store
-        self.recorder = recorder
-        self.live_view = live_view
+        # Off is a null object (None, what the command line passes, means off too): the app
+        # records and shows unconditionally and never asks whether anyone listens.
+        self.recorder = NullRecorder() if recorder is None else recorder
+        self.live_view = NullLiveView() if live_view is None else live_view
         self.on_tick = on_tick  # test hook, called on the loop after each control tick
-        self.core = ControllerCore(robot, vision=self.options.vision, t_start=time.monotonic())
+        self.calibration_store = calibration_store
+        self.core = ControllerCore(robot, vision=self.options.vision, t_start=time.monotonic(), plane_map=plane_map,
+                                   calibration=self._online_calibration())
         self.localizer = Localizer(robot, plane_map) if self.options.vision else None
+        self.odom = OdomFrame(self.core.kinematics.forward)  # odom -> base_link: the wheels alone (REP-105)
         self.stats = AppStats()
+        # Live frames are judged like snapshot files, and by their time stamp: a bad one is counted, never fused.
+        self.frame_check = FrameCheck(robot.health.frame_max_ahead, robot.health.frame_max_age)
+        self._reconnects: Optional[int] = None  # the chassis' reconnect count at the last tick
         self.exit_reason = ""
         self.camera_states: Dict[str, str] = {c.name: CameraState.STOPPED.value for c in self.cameras}
         self._loop: Optional[asyncio.AbstractEventLoop] = None
@@ -115,6 +139,22 @@ class RobotApp:
         self._stall_control_until = 0.0  # test hook: the control task sleeps through its ticks
         self.last_output = None
         self._record_seq = 0
+        self.latest_frames: Dict[str, DepthFrame] = {}  # newest frame per camera, for set-pose checks and relocalize
+        # Started once the tasks run, stopped before anything else: objects with async start()/stop()
+        # (the control socket, the fleet link); ``remote`` adds the config's.
+        self.services: list = []
+
+    def _online_calibration(self) -> Optional[CalibrationFilter]:
+        """The online calibration (``AppOptions.online_calibration``), started from its saved state."""
+        if not (self.options.online_calibration and self.options.vision):
+            return None
+        f = CalibrationFilter(self.robot)
+        if self.calibration_store is not None:
+            state, why = self.calibration_store.load()
+            notes = [why] if state is None else f.load_json(state)
+            for note in notes:
+                log.info("online calibration: %s", note)
+        return f
 
     # -- lifecycle ------------------------------------------------------------------------------
 
@@ -125,20 +165,25 @@ class RobotApp:
 
     def pause(self) -> None:
         """Brake to a stop within the limits and hold (path following); SIGUSR1 does this."""
-        if self.core.trajectory is not None:
-            self.core.trajectory.pause()
-            log.info("paused by operator")
+        self.core.pause()
+        log.info("paused by operator")
 
     def resume(self) -> None:
         """Continue the path after ``pause``; SIGUSR2 does this."""
-        if self.core.trajectory is not None:
-            self.core.trajectory.resume()
-            log.info("resumed by operator")
+        self.core.resume()
+        log.info("resumed by operator")
 
     def abort(self, reason: str = "aborted by operator") -> None:
-        if self.core.trajectory is not None:
-            self.core.trajectory.abort(reason)
+        if self.core.abort(reason):
             log.info("%s", reason)
+
+    def set_pose(self, pose: Sequence[float], cov: np.ndarray, source: str) -> None:
+        """Reset the fused pose now (operator, fleet); recorded, so that replay resets it too."""
+        t = time.monotonic()
+        self.core.set_pose(t, *pose, cov)
+        self.core.recovery.pose_set_by_operator(t)  # the next views must confirm it
+        self._record("status", t, channels.set_pose_message(t, pose[0], pose[1], pose[2], cov, source))
+        log.info("pose set to (%.3f, %.3f, %.1f deg) by %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     def stall_control_loop(self, seconds: float) -> None:
         """Test hook: make the control task miss its ticks (a hung loop) for ``seconds``."""
@@ -160,6 +205,8 @@ class RobotApp:
             sd_notify.status("starting: connecting to the motor board")
             if not await self._connect_chassis():
                 return 0 if self._stop.is_set() else 1  # stopped while waiting is a normal end
+            self.recorder.set_depth_budget(self.robot.recording.depth_max_mbit_s)
+            self.live_view.set_depth_budget(self.robot.recording.live_depth_max_mbit_s)
             self._write_config_record()
             self._init_pose()
             for cam in self.cameras:
@@ -172,19 +219,24 @@ class RobotApp:
                 self.core.follow(self.plan)
             elif self.teleop is not None:
                 self.core.teleoperate()
-            if self.live_view is not None:
-                if self.localizer is not None:
-                    self.localizer.keep_roi_labels = True
-                try:
-                    await self.live_view.start(self.plane_map)
-                except DriverError as e:  # an engineer's view must never keep the robot from running
-                    log.warning("live view off: %s", e)
-                    self.live_view = None
+            try:
+                await self.live_view.start(self.plane_map, [c.name for c in self.cameras])
+            except DriverError as e:  # an engineer's view must never keep the robot from running
+                log.warning("live view off: %s", e)
+                self.live_view = NullLiveView()
+            self.live_view.publish_static_transforms(time.monotonic(), camera_mounts(self.robot.cameras))
+            if self.localizer is not None:  # label images cost memory: only for a view or a recording
+                self.localizer.keep_roi_labels = self.live_view.active or self.recorder.active
             tasks = [self._loop.create_task(self._odometry_task(), name="odometry"),
                      self._loop.create_task(self._control_task(), name="control"),
                      self._loop.create_task(self._status_task(), name="status")]
             if self.localizer is not None:
                 tasks.append(self._loop.create_task(self._localization_task(), name="localization"))
+                tasks.append(self._loop.create_task(self._recovery_task(), name="recovery"))
+            if self.options.remote:
+                self.services += remote_services(self)
+            for service in self.services:
+                await service.start()
             sd_notify.ready(self.status_line())
             log.info("running: %s", self.status_line())
             await self._stop.wait()
@@ -198,6 +250,7 @@ class RobotApp:
         while not self._stop.is_set():
             try:
                 await self.chassis.connect()
+                log.info("motor board connected")
                 return True
             except DriverError as e:
                 timeout = self.options.startup_timeout
@@ -235,15 +288,25 @@ class RobotApp:
             else:
                 log.warning("no initial pose: %s", why)
         if pose is None:
-            log.warning("no initial pose given: the robot will not move until one is set")
+            if self.localizer is not None and self.robot.recovery.enabled:
+                log.info("no initial pose given: relocalizing from the map")
+                self.core.recovery.start_without_pose(t)
+            else:
+                log.warning("no initial pose given: the robot will not move until one is set")
             return
+        if source.startswith("saved pose"):
+            self.core.recovery.start_from_saved_pose(t)  # the robot may have been moved while off
         self.core.set_pose(t, *pose, cov)
-        self._record("status", t, {"t": t, "event": "set_pose", "x": pose[0], "y": pose[1], "phi": pose[2],
-                                   "cov": cov.ravel().tolist(), "source": source})
+        self._record("status", t, channels.set_pose_message(t, pose[0], pose[1], pose[2], cov, source))
         log.info("initial pose (%.3f, %.3f, %.1f deg) from %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     async def _shutdown(self, tasks: List[asyncio.Task]) -> None:
         sd_notify.stopping(f"stopping: {self.exit_reason or 'done'}")
+        for service in reversed(self.services):  # no command may arrive while the robot shuts down
+            try:
+                await service.stop()
+            except Exception as e:  # noqa: PERF203 - shutdown must go on
+                log.error("stopping %s: %s", type(service).__name__, e)
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -261,10 +324,10 @@ class RobotApp:
         if self.core.initialized and self.pose_store is not None:
             (x, y, phi), P = self.core.pose(time.monotonic())
             self.pose_store.save(time.monotonic(), x, y, phi, P, self.plane_map.source, force=True)
-        if self.live_view is not None:
-            await self.live_view.stop()
-        if self.recorder is not None:
-            self.recorder.close()
+        if self.core.calibration is not None and self.calibration_store is not None:
+            self.calibration_store.save(time.monotonic(), self.core.calibration.to_json(), force=True)
+        await self.live_view.stop()
+        self.recorder.close()
         if self.options.install_signal_handlers and self._loop is not None:
             for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1, signal.SIGUSR2):
                 self._loop.remove_signal_handler(sig)
@@ -294,7 +357,7 @@ class RobotApp:
             log.debug("camera %s: gyro sample refused: %s", camera.name, e)
             return
         self.core.on_gyro(sample.t, wz, GYRO_VARIANCE)
-        self._record("odometry", sample.t, {"t": sample.t, "gyro_wz": wz, "variance": GYRO_VARIANCE, "camera": camera.name})
+        self._record("odometry", sample.t, channels.gyro_message(sample.t, wz, GYRO_VARIANCE, camera.name))
 
     def _camera_state_threadsafe(self, name: str, state: CameraState) -> None:
         try:
@@ -305,14 +368,21 @@ class RobotApp:
     def _camera_state(self, name: str, state: CameraState) -> None:
         old = self.camera_states.get(name)
         self.camera_states[name] = state.value
-        if old != state.value:
-            (log.info if state is CameraState.STREAMING else log.warning)("camera %s: %s", name, state.value)
+        if old != state.value:  # starting, streaming and stopping are its normal life; the rest is trouble
+            trouble = state in (CameraState.STALLED, CameraState.GONE)
+            (log.warning if trouble else log.info)("camera %s: %s", name, state.value)
 
     def _frame_arrived(self, frame: DepthFrame) -> None:
         self.stats.frames[frame.camera] = self.stats.frames.get(frame.camera, 0) + 1
+        if not self.frame_check.admit(frame, time.monotonic()):  # before it can displace a good frame
+            n = self.frame_check.refused[frame.camera]
+            if n == 1 or n % 100 == 0:
+                log.warning("frame refused (%d so far from this camera): %s", n, self.frame_check.last_reason[frame.camera])
+            return
         if self._slots.get(frame.camera) is not None:
             self.stats.frames_dropped[frame.camera] = self.stats.frames_dropped.get(frame.camera, 0) + 1
         self._slots[frame.camera] = frame
+        self.latest_frames[frame.camera] = frame
         self._new_frame.set()
 
     # -- tasks ----------------------------------------------------------------------------------
@@ -323,8 +393,8 @@ class RobotApp:
             odo = await q.get()
             self.stats.odometry += 1
             self.core.on_odometry(odo, quantisation_variance(self.robot.chassis.ticks_per_rev, odo.dt))
-            self._record("odometry", odo.t, {"t": odo.t, "wheel_speeds": list(odo.speeds), "angles": list(odo.angles),
-                                             "dt": odo.dt, "t_board": odo.t_board})
+            self.odom.update(odo)
+            self._record("odometry", odo.t, channels.odometry_message(odo.t, odo.speeds, odo.angles, odo.dt, odo.t_board))
 
     async def _localization_task(self) -> None:
         loop = self._loop
@@ -336,13 +406,18 @@ class RobotApp:
                 if frame is None:
                     continue
                 self._slots[name] = None
-                if not self.core.initialized:
+                # The camera's calibrated depth scale; the recording keeps the frame as the camera gave it.
+                scaled = calibrated_frame(frame, self.robot.camera(frame.camera).depth_scale)
+                # The protective stop sees every frame (off the loop), with the pose if there is one.
+                seen_from = self.core.coarse_pose(frame.t_capture)[0] if self.core.initialized else None
+                await loop.run_in_executor(self._executor, self._scan_obstacles, scaled, seen_from)
+                self.live_view.publish_depth(frame.t_capture, frame)
+                if not self.core.initialized or self.localizer is None:
                     continue
                 (x, y, phi), P = self.core.coarse_pose(frame.t_capture)
-                if self.recorder is not None:
-                    self.recorder.write_depth(frame.t_capture, frame)  # only the frames the localizer uses
+                self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
                 try:
-                    result = await loop.run_in_executor(self._executor, self.localizer.localize, [frame], (x, y, phi), P,
+                    result = await loop.run_in_executor(self._executor, self.localizer.localize, [scaled], (x, y, phi), P,
                                                         self.options.method)
                 except Exception as e:  # a bad frame is reported and skipped, never fused
                     log.warning("camera %s frame %d: localization failed: %s", name, frame.frame_number, e)
@@ -353,16 +428,67 @@ class RobotApp:
                     del self.stats.localize_ms[:5000]
                 report = self.core.on_localization(result, frame.t_capture, name)
                 # everything replay needs to redo this localization bit for bit, and what it gave
-                self._record("planes", frame.t_capture, {
-                    "t": frame.t_capture, "camera": name, "frame_number": frame.frame_number, "method": self.options.method,
-                    "coarse": [x, y, phi], "coarse_cov": np.asarray(P).ravel().tolist(), "status": result.status,
-                    "planes": [p.to_json() for p in result.planes], "accepted": report.accepted,
-                    "rejected": [list(r) for r in report.rejected]})
-                if self.live_view is not None:
-                    self.live_view.publish_planes(frame.t_capture, name, [p.to_json() for p in result.planes])
-                    labels = self.localizer.last_roi_labels.get(name)
-                    if labels is not None:
-                        self.live_view.publish_roi(frame.t_capture, name, labels)
+                self._record("planes", frame.t_capture, channels.planes_message(
+                    frame.t_capture, name, result.planes, frame_number=frame.frame_number, method=self.options.method,
+                    coarse=(x, y, phi), coarse_cov=P, status=result.status, accepted=report.accepted,
+                    rejected=report.rejected, measurements=result.measurements))
+                self.live_view.publish_planes(frame.t_capture, name, result.planes)
+                if self.recorder.active:
+                    self.recorder.write(channels.TOPIC_PLANE_FITS, frame.t_capture, channels.plane_fits_message(
+                        frame.t_capture, name, result.planes, self.plane_map))
+                labels = self.localizer.last_roi_labels.get(name)
+                if labels is not None:
+                    self.live_view.publish_roi(frame.t_capture, name, labels)
+                    self.recorder.write_roi(frame.t_capture, name, labels)
+
+    async def _recovery_task(self) -> None:
+        """Relocalize when the recovery supervisor asks (no pose, lost, kidnapped, a saved pose the
+        cameras contradict): on the first frame of every camera taken after the request, off the loop."""
+        from robot.localization.relocalize import Relocalizer
+
+        relocalizer: Optional[Relocalizer] = None
+        while True:
+            await asyncio.sleep(RECOVERY_POLL)
+            t_request = time.monotonic()
+            if not self.core.relocalization_due(t_request):
+                continue
+            sd_notify.status(f"relocalizing: {self.core.recovery.reason}")
+            log.warning("relocalizing: %s", self.core.recovery.reason)
+            frames = await self._frames_after(t_request)
+            if relocalizer is None:
+                relocalizer = await self._loop.run_in_executor(self._executor, Relocalizer, self.robot, self.plane_map,
+                                                               self.localizer)
+            try:
+                res = await self._loop.run_in_executor(self._executor, relocalizer.relocalize, frames)
+            except Exception as e:  # a bad frame: report it and try again later, never move on it
+                log.error("relocalization failed: %s", e)
+                self.core.recovery.on_verdict(time.monotonic(), "none", [], str(e))
+                continue
+            t_frames = max(f.t_capture for f in frames)
+            if res.verdict == "unique":
+                h = res.hypotheses[0]
+                self.core.set_pose(t_frames, h.x, h.y, h.phi, np.asarray(h.cov, float))
+                self._record("status", t_frames, channels.set_pose_message(t_frames, h.x, h.y, h.phi,
+                                                                           np.asarray(h.cov, float), "relocalization"))
+                log.info("relocalized at (%.3f, %.3f, %.1f deg); confirming", h.x, h.y, math.degrees(h.phi))
+            else:
+                log.warning("relocalization %s: %s", res.verdict, res.reason)
+            self.core.recovery.on_verdict(time.monotonic(), res.verdict, [h.to_json() for h in res.hypotheses[:8]],
+                                          res.reason)
+
+    async def _frames_after(self, t: float) -> List[DepthFrame]:
+        """The first frame of every camera captured after ``t`` (the robot stands still meanwhile)."""
+        while True:
+            frames = [f for f in self.latest_frames.values() if f.t_capture > t]
+            if len(frames) == len(self.cameras) and frames:
+                return frames
+            await asyncio.sleep(RECOVERY_POLL / 4)
+
+    def _scan_obstacles(self, frame, pose) -> None:
+        try:
+            self.core.safety.update_scan(frame.camera, frame.t_capture, frame.depth_m(), frame.K, pose)
+        except Exception as e:  # a bad frame must not kill the worker; its camera's scan just ages out
+            log.warning("camera %s frame %d: obstacle scan failed: %s", frame.camera, frame.frame_number, e)
 
     async def _control_task(self) -> None:
         loop = self._loop
@@ -385,8 +511,13 @@ class RobotApp:
         ticks.append(t)
         if len(ticks) > 20000:
             del ticks[:10000]
-        link_ok = self.chassis.link_state.value == "ready"
+        link_ok = self.chassis.link_state is LinkState.READY
         self.core.set_chassis_link(link_ok, "" if link_ok else f"chassis link {self.chassis.link_state.value}")
+        reconnects = int(self.chassis.stats.get("reconnects", 0) or 0)
+        if self._reconnects is not None and reconnects != self._reconnects:
+            # a new session (perhaps a rebooted board) may have come up between two ticks
+            self.core.note_fault(t, "the motor board reconnected")
+        self._reconnects = reconnects
         if self.teleop is not None:
             self.core.set_teleop_twist(t, *self.teleop.twist(t))
         out = self.core.control_step(t)
@@ -399,13 +530,11 @@ class RobotApp:
         else:
             self.stats.commands_withheld += 1
         self._watchdog.tick()  # only a control loop that ticks keeps systemd from restarting us
-        if self.recorder is not None:
-            c = out.command
-            self._record("cmd", t, {"t": t, "wheel_speeds": list(out.wheels) if out.wheels else None,
-                                    "sent": out.wheels is not None, "vx": c.vx, "vy": c.vy, "wz": c.wz,
-                                    "state": c.state, "scale": out.speed_scale, "reason": out.reason})
-        if self.live_view is not None:
-            self.live_view.publish_cmd(t, out.command.vx, out.command.vy, out.command.wz)
+        c = out.command
+        self._record("cmd", t, channels.cmd_message(t, c.vx, c.vy, c.wz, out.wheels, sent=out.wheels is not None,
+                                                    state=c.state, scale=out.speed_scale, reason=out.reason))
+        self.live_view.publish_cmd(t, c.vx, c.vy, c.wz, out.wheels)
+        self._publish_pose(t)
         if self.options.stop_when_done and self.core.finished:
             self.request_stop("path complete")
         if self.on_tick is not None:
@@ -417,16 +546,31 @@ class RobotApp:
             t = time.monotonic()
             line = self.status_line()
             sd_notify.status(line)
-            if self.core.initialized:
+            if self.core.initialized and self.pose_store is not None:
                 (x, y, phi), P = self.core.pose(t)
-                q = self.core.evaluate_quality(t)
-                if self.pose_store is not None:
-                    self.pose_store.save(t, x, y, phi, P, self.plane_map.source)
-                if self.recorder is not None:
-                    self._record("pose", t, mcap_schema.pose_message(t, x, y, phi, P, q.state))
-                if self.live_view is not None:
-                    self.live_view.publish_pose(t, x, y, phi, P, q.state, q.reason)
-            self._record("status", t, self.status(t))
+                self.pose_store.save(t, x, y, phi, P, self.plane_map.source)
+            if self.core.calibration is not None and self.calibration_store is not None:
+                self.calibration_store.save(t, self.core.calibration.to_json())
+            status = self.status(t)
+            self._record("status", t, channels.status_message(t, status))
+            self.live_view.publish_status(t, status)
+
+    def _publish_pose(self, t: float) -> None:
+        """Every control tick: the fused pose the tick used, with its quality, and the REP-105
+        transforms: map -> odom corrected by it, odom -> base_link from the wheels alone."""
+        if not self.core.initialized:
+            return
+        s = self.core.status(t)  # the pose at t and the quality this tick's control step judged
+        self._record("pose", t, channels.pose_message(t, s["x"], s["y"], s["phi"], s["cov"], quality=s["quality"],
+                                                      reason=s["reason"]))
+        self.live_view.publish_pose(t, s["x"], s["y"], s["phi"], s["cov"], s["quality"], s["reason"])
+        # both transforms at the time of the newest odometry, so that they compose to the fused pose there
+        t_odom = self.odom.t if self.odom.t is not None else t
+        T_map_base, _ = self.core.pose(t_odom)
+        T_map_odom, T_odom_base = self.odom.map_to_odom(T_map_base), self.odom.pose
+        if self.recorder.active:
+            self.recorder.write(channels.TOPIC_TF, t, channels.odometry_transforms(t_odom, T_map_odom, T_odom_base))
+        self.live_view.publish_tf(t_odom, T_map_odom, T_odom_base)
 
     # -- reporting ------------------------------------------------------------------------------
 
@@ -436,6 +580,9 @@ class RobotApp:
         s["cameras"] = dict(self.camera_states)
         s["chassis"] = self.chassis.link_state.value
         s["frames_dropped"] = dict(self.stats.frames_dropped)
+        s["frames_refused"] = dict(self.frame_check.refused)
+        if self.frame_check.last_reason:
+            s["frame_refusal"] = dict(self.frame_check.last_reason)
         if self.last_output is not None:
             s["speed_scale"] = self.last_output.speed_scale
             s["command_reason"] = self.last_output.reason
@@ -450,21 +597,22 @@ class RobotApp:
 
     def _record(self, kind: str, t: float, message: Dict[str, object]) -> None:
         """Record with a sequence number: replay redoes the core's calls in exactly this order."""
-        if self.recorder is None:
-            return
         self._record_seq += 1
         message["seq"] = self._record_seq
         self.recorder.write(_TOPICS[kind], t, message)
 
     def _write_config_record(self) -> None:
-        if self.recorder is None:
-            return
-        self.recorder.write_config(time.monotonic(), _read_text(self.robot.source), _read_text(self.plane_map.source),
-                                   robot_config_path=self.robot.source, map_path=self.plane_map.source)
+        """The run's config (YAML text and effective values) and map, at the start of the recording."""
+        t = time.monotonic()
+        self.recorder.write_config(t, _read_text(self.robot.source), _read_text(self.plane_map.source),
+                                   robot_config_path=self.robot.source, map_path=self.plane_map.source,
+                                   effective_config=effective_config_dict(self.robot, self.plane_map.source))
+        self.recorder.write(channels.TOPIC_MAP, t, channels.map_message(self.plane_map, t))
+        self.recorder.write(channels.TOPIC_TF_STATIC, t, channels.transforms_message(t, camera_mounts(self.robot.cameras)))
 
 
-_TOPICS = {"odometry": mcap_schema.TOPIC_ODOMETRY, "planes": mcap_schema.TOPIC_PLANES, "cmd": mcap_schema.TOPIC_CMD,
-           "pose": mcap_schema.TOPIC_POSE, "status": mcap_schema.TOPIC_STATUS}
+_TOPICS = {"odometry": channels.TOPIC_ODOMETRY, "planes": channels.TOPIC_PLANES, "cmd": channels.TOPIC_CMD,
+           "pose": channels.TOPIC_POSE, "status": channels.TOPIC_STATUS}
 
 
 def _read_text(path: str) -> str:

@@ -123,10 +123,6 @@ class TerminalKeyboard:
         self._status = ""
         self.dropped_writes = 0
 
-    @property
-    def ignored_bytes(self) -> int:
-        return self._decoder.ignored
-
     # Public interface  ------
 
     async def __aenter__(self) -> TerminalKeyboard:

@@ -133,3 +133,19 @@ def newell_normal(vertices: np.ndarray) -> np.ndarray:
             np.sum((v[:, 0] - w[:, 0]) * (v[:, 1] + w[:, 1])),
         ]
     )
+
+
+_X_AXIS = np.array([1.0, 0.0, 0.0])
+_Z_AXIS = np.array([0.0, 0.0, 1.0])
+
+
+def plane_axes(n: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Unit in-plane axes (a, b) of the plane with unit normal n, with a x b = n, so that the 2-D
+    coordinates (p . a, p . b) keep a polygon's winding as seen from n.
+
+    For a wall, a = z x n is horizontal (to the right of a viewer facing the wall) and b points up;
+    a plane within 26 degrees of horizontal takes a = x x n instead, as z x n vanishes for a floor.
+    """
+    a = np.cross(_Z_AXIS if abs(n[2]) < 0.9 else _X_AXIS, n)
+    a /= np.linalg.norm(a)
+    return a, np.cross(n, a)

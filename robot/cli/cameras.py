@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Dict, List
 
 from robot.base.errors import DriverError, InputError
-from robot.cli.common import add_robot_map_args, print_json
+from robot.base.files import check_writable_file
+from robot.cli.common import add_robot_map_args, float_in, int_in, print_json
 
 RECOMMENDED_FIRMWARE = "5.16.0.1"  # what librealsense 2.55.1 ships with and recommends for D400
 
@@ -171,6 +172,7 @@ def cmd_record_bag(args) -> int:
     out = Path(args.out)
     if out.suffix != ".bag":
         raise InputError(f"{out}: the output must end in .bag (librealsense 2.55 writes ROS1 bags)")
+    check_writable_file(out, "--out")
     if args.frames < 1:
         raise InputError(f"--frames must be >= 1, got {args.frames}")
     if not all(math.isfinite(v) for v in list(args.pose) + list(args.velocity)):
@@ -207,10 +209,11 @@ def register(sub) -> None:
     r.add_argument("--velocity", nargs=3, type=float, default=(0.0, 0.0, 0.0), metavar=("VX", "VY", "OMEGA"),
                    help="constant ground-frame velocity (m/s, m/s, rad/s); default still")
     r.add_argument("--camera", required=True, help="camera name in the robot config")
-    r.add_argument("--frames", type=int, default=30, help="number of depth frames (default 30)")
-    r.add_argument("--imu-rate", type=float, default=0.0, help="IMU samples per second (0 = no IMU; D435i: 200)")
+    r.add_argument("--frames", type=int_in(1, 10000), default=30, help="number of depth frames, 1 to 10000 (default 30)")
+    r.add_argument("--imu-rate", type=float_in(0.0, 1000.0, "Hz"), default=0.0,
+                   help="IMU samples per second (0 = no IMU; D435i: 200)")
     r.add_argument("--no-noise", action="store_true", help="exact depth, no stereo noise")
-    r.add_argument("--seed", type=int, default=0, help="noise seed")
+    r.add_argument("--seed", type=int_in(0, 2**32 - 1), default=0, help="noise seed")
     r.add_argument("--out", required=True, help="output .bag")
     r.add_argument("--json", action="store_true", help="print JSON")
     r.set_defaults(func=cmd_record_bag)

@@ -19,15 +19,17 @@ from typing import List, Optional
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+from robot.app.logs import journal_prefix, setup_logging  # noqa: E402
 from robot.base.errors import RobotError  # noqa: E402
-from robot.cli import bench, cameras, chassis, localize, maps, replay, run, sim, teleop  # noqa: E402
+from robot.cli import bench, calibrate, cameras, chassis, control, localize, maps, relocalize, replay, run, sim, teleop  # noqa: E402
+from robot.cli.common import OneLineParser  # noqa: E402
 
 # The modules that add subcommands, in the order `robotctl --help` lists them.
-COMMAND_MODULES = (localize, maps, cameras, chassis, sim, run, teleop, replay, bench)
+COMMAND_MODULES = (localize, relocalize, maps, cameras, chassis, calibrate, sim, run, teleop, control, replay, bench)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="robotctl", description="Plane-map localization controller for a Mecanum robot")
+    parser = OneLineParser(prog="robotctl", description="Plane-map localization controller for a Mecanum robot")
     parser.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
@@ -36,19 +38,57 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Commands that read their files and end. Their warnings are held until they end, so that a bad
+# file is still one line: a warning that explains the error (a skipped channel, say) joins it.
+BATCH_COMMANDS = {"localize", "visible", "render", "demo", "relocalize", "map", "replay"}
+
+
+class _HeldWarnings(logging.Filter):
+    def __init__(self) -> None:
+        super().__init__()
+        self.records: List[logging.LogRecord] = []
+        self.handlers = [h for h in logging.getLogger().handlers if getattr(h, "_robotctl", False)]
+        for h in self.handlers:
+            h.addFilter(self)
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno >= logging.WARNING:
+            self.records.append(record)
+            return False
+        return True
+
+    def release(self, show: bool) -> None:
+        for h in self.handlers:
+            h.removeFilter(self)
+            for record in self.records if show else ():
+                h.handle(record)
+
+    def summary(self) -> str:
+        if not self.records:
+            return ""
+        n = len(self.records)
+        return f" (after {n} warning{'s' if n > 1 else ''}: {self.records[0].getMessage()[:160]})"
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(verbose=args.verbose)  # under systemd: syslog priorities, for `journalctl -p`
+    held = _HeldWarnings() if args.command in BATCH_COMMANDS and not args.verbose else None
+    failed = False
     try:
         rc = args.func(args)
     except RobotError as e:
-        sys.stderr.write(f"robotctl {args.command}: error: {e}\n")
+        failed = True
+        note = held.summary() if held is not None else ""
+        sys.stderr.write(f"{journal_prefix(logging.ERROR)}robotctl {args.command}: error: {e}{note}\n")
         return 2
     except KeyboardInterrupt:
         sys.stderr.write(f"robotctl {args.command}: interrupted\n")
         return 130
+    finally:
+        if held is not None:
+            held.release(show=not failed)
     return int(rc or 0)
 
 

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import sys
 from typing import Any, Dict, List, Optional, Tuple
 
-from robot.base.errors import ConfigError
-from robot.cli.common import DEFAULT_ROBOT, print_json
+from robot.base.errors import ConfigError, RobotError
+from robot.base.files import MAP, check_writable_file
+from robot.cli.common import DEFAULT_ROBOT, float_in, int_in, print_json
 from robot.config.schema import load_yaml_file
 
 
@@ -23,10 +25,11 @@ def register(subparsers) -> None:
     imp.add_argument("--out", help="map YAML to write (without it, only the report is printed)")
     imp.add_argument("--robot", default=str(DEFAULT_ROBOT),
                      help="robot config whose cameras set the height band (default: %(default)s)")
-    imp.add_argument("--band", nargs=2, type=float, metavar=("Z_LO", "Z_HI"),
+    imp.add_argument("--band", nargs=2, type=float_in(-100.0, 100.0, "m"), metavar=("Z_LO", "Z_HI"),
                      help="height band to keep, metres above the floor, instead of the cameras' band")
-    imp.add_argument("--min-width", type=float, default=0.5, help="narrowest face kept, m (default 0.5)")
-    imp.add_argument("--min-area", type=float, default=0.5, help="smallest face kept, m^2 (default 0.5)")
+    imp.add_argument("--min-width", type=float_in(0.0, 100.0, "m"), default=0.5, help="narrowest face kept, m (default 0.5)")
+    imp.add_argument("--min-area", type=float_in(0.0, 10000.0, "m^2"), default=0.5,
+                     help="smallest face kept, m^2 (default 0.5)")
     imp.add_argument("--no-openings", action="store_true",
                      help="do not cut doors and windows out of walls (5-16x faster, but the map then "
                           "claims wall where the camera sees holes)")
@@ -34,7 +37,7 @@ def register(subparsers) -> None:
                      help="keep faces above the next storey's floor (only the camera band limits them)")
     imp.add_argument("--types", default="IfcWall,IfcColumn",
                      help="comma-separated IFC classes to take faces from (default %(default)s)")
-    imp.add_argument("--threads", type=int, default=2, help="geometry threads (default 2)")
+    imp.add_argument("--threads", type=int_in(1, 64), default=2, help="geometry threads, 1 to 64 (default 2)")
     imp.add_argument("--note", default="", help="text added to the map's header comment (e.g. attribution)")
     imp.add_argument("--json", action="store_true", help="print the report as JSON")
     imp.set_defaults(func=cmd_import_ifc)
@@ -49,7 +52,7 @@ def register(subparsers) -> None:
 
     chk = sub.add_parser("check", help="validity: planarity, orientation, duplicates (exit 1 on errors)")
     chk.add_argument("map", help="map YAML")
-    chk.add_argument("--max-thickness", type=float, default=0.6,
+    chk.add_argument("--max-thickness", type=float_in(0.0, 10.0, "m", lo_open=True), default=0.6,
                      help="thickest wall, m: how far the back-face test looks (default 0.6)")
     chk.add_argument("--json", action="store_true", help="print JSON")
     chk.set_defaults(func=cmd_check)
@@ -80,9 +83,25 @@ def _band(args) -> Tuple[float, float, float]:
 
 
 def cmd_import_ifc(args) -> int:
+    try:
+        return _import_ifc(args)
+    except (AttributeError, KeyError, IndexError, TypeError, ValueError, RuntimeError, ZeroDivisionError) as e:
+        # ConfigError is a ValueError: it passes as it is. Anything else came out of a model whose
+        # entities do not fit together (a reference to an entity that is not there, a geometry the
+        # kernel refuses): a bad file, not a crash. -v logs the traceback.
+        if isinstance(e, RobotError):
+            raise
+        logging.getLogger(__name__).debug("import of %s failed", args.model, exc_info=True)
+        raise ConfigError(f"{args.model}: the IFC model is inconsistent, cannot import it "
+                          f"({type(e).__name__}: {str(e)[:120]})") from None
+
+
+def _import_ifc(args) -> int:
     from robot.maps import ifc_import
 
     model = ifc_import.open_model(args.model)
+    if args.out and args.storey is not None:
+        check_writable_file(args.out, "--out")  # before minutes of geometry, not after
     types = tuple(t.strip() for t in args.types.split(",") if t.strip())
     if not types:
         raise ConfigError("--types: give at least one IFC class")
@@ -140,6 +159,8 @@ def cmd_info(args) -> int:
     from robot.maps.tools import map_summary
 
     pm = _load(args.map)
+    if args.png:
+        check_writable_file(args.png, "--png")
     band: Optional[Tuple[float, float]] = None
     config = args.robot or (DEFAULT_ROBOT if DEFAULT_ROBOT.is_file() else None)
     if config is not None:
@@ -176,7 +197,7 @@ def cmd_check(args) -> int:
 
     if not (math.isfinite(args.max_thickness) and args.max_thickness > 0):
         raise ConfigError(f"--max-thickness must be a positive number of metres, got {args.max_thickness}")
-    data = load_yaml_file(args.map)
+    data = load_yaml_file(args.map, MAP)
     issues, pm = check_map_data(data, source=str(args.map), max_thickness=args.max_thickness)
     errors = [i for i in issues if i.severity == "error"]
     warnings = [i for i in issues if i.severity == "warning"]

@@ -7,8 +7,10 @@ same result), 1 when they differ (the report says where), 2 on a bad file.
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 
+from robot.base.errors import InputError, RobotError
 from robot.cli.common import print_json
 from robot.config import load_robot_config
 from robot.maps.plane_map import load_plane_map
@@ -28,7 +30,16 @@ def register(sub) -> None:
 def cmd_replay(args) -> int:
     robot = load_robot_config(args.robot) if args.robot else None
     plane_map = load_plane_map(args.map) if args.map else None
-    report = replay(args.recording, robot, plane_map)
+    try:
+        report = replay(args.recording, robot, plane_map)
+    except RobotError:
+        raise
+    except (KeyError, IndexError, TypeError, ValueError, OverflowError, ZeroDivisionError) as e:
+        # The replay trusts each message's fields (a recording is our own file); one that was
+        # edited, or written by another tool, is a bad file, not a crash. -v logs the traceback.
+        logging.getLogger(__name__).debug("replay of %s failed", args.recording, exc_info=True)
+        raise InputError(f"{args.recording}: a recorded message does not hold what the replay needs "
+                         f"({type(e).__name__}: {str(e)[:120]})") from None
     if args.json:
         print_json(report.to_json())
     else:

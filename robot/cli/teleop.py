@@ -12,8 +12,10 @@ import argparse
 import asyncio
 import time
 
+from robot.app.assemble import build_rig
 from robot.app.controller import AppOptions, RobotApp
 from robot.app.pose_store import PoseStore
+from robot.cli.common import float_in
 from robot.cli.run import add_app_args, load_app_inputs, make_live_view, make_recorder
 
 
@@ -23,8 +25,9 @@ def register(sub) -> None:
     add_app_args(p)
     p.set_defaults(config="config/robot.yaml")
     p.add_argument("--sim", action="store_true", help="drive the simulated robot (emulated board, fake cameras)")
-    p.add_argument("--fps", type=float, default=15.0, help="simulated camera rate (default: %(default)s)")
-    p.add_argument("--deadman", type=float, default=0.6, help="s a key holds its motion without a repeat (default: %(default)s)")
+    p.add_argument("--fps", type=float_in(1.0, 90.0, "Hz"), default=15.0, help="simulated camera rate (default: %(default)s)")
+    p.add_argument("--deadman", type=float_in(0.05, 5.0, "s"), default=0.6,
+                   help="s a key holds its motion without a repeat, 0.05 to 5 (default: %(default)s)")
     p.set_defaults(func=cmd_teleop)
 
 
@@ -58,21 +61,15 @@ def cmd_teleop(args) -> int:
     store = PoseStore(args.state_dir) if args.state_dir else None
     recorder = make_recorder(args.record)
     live = make_live_view(args.live)
-    if args.sim:
-        from robot.sim.realtime import RealtimeSimSettings, sim_rig
-
-        if init is None:
-            lo, hi = plane_map.bounds()
-            init = (float(lo[0] + hi[0]) / 2.0, float(lo[1] + hi[1]) / 2.0, 0.0)
-        with sim_rig(robot, plane_map, init, RealtimeSimSettings(fps=args.fps), options, teleop=True,
-                     initial_pose=init, pose_store=store, recorder=recorder, live_view=live) as rig:
-            rc = asyncio.run(_drive(rig.app, robot, args.deadman))
-    else:
-        from drivers.camera.realsense import RealSenseCamera
-        from drivers.chassis.serial_chassis import SerialChassis
-
-        app = RobotApp(robot, plane_map, [RealSenseCamera(c) for c in robot.cameras], SerialChassis(robot.chassis),
-                       options, teleop=True, initial_pose=init, pose_store=store, recorder=recorder, live_view=live)
+    if args.sim and init is None:  # the simulated robot starts in the middle of its map
+        lo, hi = plane_map.bounds()
+        init = (float(lo[0] + hi[0]) / 2.0, float(lo[1] + hi[1]) / 2.0, 0.0)
+    rig = build_rig("sim" if args.sim else "hardware", robot, plane_map, init, fps=args.fps)
+    try:
+        app = RobotApp(robot, plane_map, rig.cameras, rig.chassis, options, teleop=True, initial_pose=init,
+                       pose_store=store, recorder=recorder, live_view=live)
         rc = asyncio.run(_drive(app, robot, args.deadman))
+    finally:
+        rig.close()
     print()
     return rc

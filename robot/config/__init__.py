@@ -5,6 +5,8 @@ part of the robot, a driver included, can read its settings without loading the 
 not use.
 """
 
+from robot.config.control_api import ControlApiConfig
+from robot.config.fleet import FleetConfig
 from robot.config.loader import RobotConfig, load_robot_config, parse_robot_config
 from robot.config.realsense import RealSenseConfig
 from robot.config.sections import (
@@ -20,8 +22,10 @@ from robot.config.sections import (
 __all__ = [
     "CameraConfig",
     "ChassisConfig",
+    "ControlApiConfig",
     "ControlConfig",
     "FilterConfig",
+    "FleetConfig",
     "HealthConfig",
     "LocalizerConfig",
     "QualityConfig",

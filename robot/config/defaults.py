@@ -18,4 +18,3 @@ def defaults_dir() -> Path:
 
 DEFAULT_ROBOT = defaults_dir() / "robot.yaml"
 DEFAULT_MAP = defaults_dir() / "maps" / "paper_arena.yaml"
-DEFAULT_PATH = defaults_dir() / "paths" / "paper_4_3.yaml"

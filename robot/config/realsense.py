@@ -10,14 +10,17 @@ Pure (no pyrealsense2, no numpy), so the robot config loads on machines without 
           visual_preset: high_accuracy
           laser_power: 150
           imu_enabled: true
+
+Ranges are declared beside each field (``robot.config.ranges``); the loader checks them, and so
+does :meth:`RealSenseConfig.validate` for settings built in code (the driver calls it).
 """
 
 from __future__ import annotations
 
-import math
+import dataclasses
 from dataclasses import dataclass
 
-from robot.base.errors import ConfigError
+from robot.config.ranges import check_fields, choice, field_choices, field_range, flag, integer, number
 from robot.config.schema import Section
 
 VISUAL_PRESETS = ("default", "high_accuracy", "high_density", "medium_density", "hand", "custom")
@@ -30,61 +33,42 @@ class RealSenseConfig:
     wants fewer, right points, not more, invented ones.
     """
 
-    visual_preset: str = "high_accuracy"  # one of VISUAL_PRESETS; "custom" leaves the camera's own
-    emitter_enabled: bool = True  # the IR pattern projector; texture for stereo on bare walls
-    laser_power: float = 150.0  # mW, clamped to the camera's range (D435: 0..360, factory 150)
-    frame_timeout_ms: int = 1000  # a wait this long without a frame is a stall
-    stalls_before_reset: int = 3  # consecutive timeouts before hardware_reset (live) / restart
-    reconnect_backoff_max: float = 5.0  # s, cap of the exponential backoff while GONE
-    reset_settle: float = 3.0  # s to wait after hardware_reset before looking for the device
-    clock_window: float = 10.0  # s of host time over which the clock offset is estimated
-    imu_enabled: bool = False  # stream gyro and accel (D435i) for the EKF's prediction
-    gyro_fps: int = 200  # D435i: 200 or 400
-    accel_fps: int = 63  # D435i: 63 or 250 (100 or 200 on firmware >= 5.16); nearest is taken
-    decimation: int = 1  # librealsense decimation_filter magnitude; 1 = off
-    spatial_filter: bool = False  # librealsense spatial_filter (edge-preserving smoothing)
-    temporal_filter: bool = False  # librealsense temporal_filter (smooths over frames: lags motion)
+    visual_preset: str = choice("high_accuracy", VISUAL_PRESETS, "depth preset; custom leaves the camera's own")
+    emitter_enabled: bool = flag(True, "the IR pattern projector: texture for stereo on bare walls")
+    laser_power: float = number(150.0, 0.0, 360.0, "mW", "emitter power (D435: 0 to 360, factory 150)")
+    frame_timeout_ms: int = integer(1000, 50, 10_000, "ms", "a wait this long without a frame is a stall")
+    stalls_before_reset: int = integer(3, 1, 1000, "", "consecutive timeouts before hardware_reset (live) or "
+                                       "restart")
+    reconnect_backoff_max: float = number(5.0, 0.0, 300.0, "s", "cap of the exponential backoff while the camera "
+                                          "is gone")
+    reset_settle: float = number(3.0, 0.0, 60.0, "s", "wait after hardware_reset before looking for the device")
+    clock_window: float = number(10.0, 0.0, 600.0, "s", "of host time over which the clock offset is estimated",
+                                 lo_open=True)
+    imu_enabled: bool = flag(False, "stream gyro and accel (D435i) for the EKF's prediction")
+    gyro_fps: int = integer(200, 1, 400, "Hz", "D435i: 200 or 400")
+    accel_fps: int = integer(63, 1, 250, "Hz", "D435i: 63 or 250 (100 or 200 on firmware >= 5.16); the nearest is "
+                             "taken")
+    decimation: int = integer(1, 1, 8, "", "librealsense decimation_filter magnitude", text="1 (off) to 8")
+    spatial_filter: bool = flag(False, "librealsense spatial_filter (edge-preserving smoothing)")
+    temporal_filter: bool = flag(False, "librealsense temporal_filter (smooths over frames: lags motion)")
 
     def validate(self, where: str = "realsense") -> None:
         """ConfigError naming the field if a value is out of range (also for settings built in code)."""
-        if self.visual_preset not in VISUAL_PRESETS:
-            raise ConfigError(f"{where}: 'visual_preset' must be one of {list(VISUAL_PRESETS)}, "
-                              f"got {self.visual_preset!r}")
-        if not 1 <= self.decimation <= 8:
-            raise ConfigError(f"{where}: 'decimation' must be 1 (off) to 8, got {self.decimation}")
-        if self.frame_timeout_ms < 50:
-            raise ConfigError(f"{where}: 'frame_timeout_ms' must be >= 50, got {self.frame_timeout_ms}")
-        if self.stalls_before_reset < 1:
-            raise ConfigError(f"{where}: 'stalls_before_reset' must be >= 1, got {self.stalls_before_reset}")
-        for name in ("laser_power", "reconnect_backoff_max", "reset_settle", "clock_window"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"{where}: '{name}' must be a finite number >= 0, got {v}")
-        if self.clock_window <= 0:
-            raise ConfigError(f"{where}: 'clock_window' must be > 0, got {self.clock_window}")
-        if self.gyro_fps <= 0 or self.accel_fps <= 0:
-            raise ConfigError(f"{where}: 'gyro_fps' and 'accel_fps' must be > 0")
+        check_fields(self, where)
 
 
 def parse_realsense_config(sec: Section) -> RealSenseConfig:
     """Read a ``realsense:`` section (every key optional; unknown keys are errors)."""
-    d = RealSenseConfig()
-    cfg = RealSenseConfig(
-        visual_preset=sec.string("visual_preset", d.visual_preset, choices=VISUAL_PRESETS),
-        emitter_enabled=sec.boolean("emitter_enabled", d.emitter_enabled),
-        laser_power=sec.number("laser_power", d.laser_power, lo=0.0),
-        frame_timeout_ms=sec.integer("frame_timeout_ms", d.frame_timeout_ms, lo=50),
-        stalls_before_reset=sec.integer("stalls_before_reset", d.stalls_before_reset, lo=1),
-        reconnect_backoff_max=sec.number("reconnect_backoff_max", d.reconnect_backoff_max, lo=0.0),
-        reset_settle=sec.number("reset_settle", d.reset_settle, lo=0.0),
-        clock_window=sec.number("clock_window", d.clock_window, positive=True),
-        imu_enabled=sec.boolean("imu_enabled", d.imu_enabled),
-        gyro_fps=sec.integer("gyro_fps", d.gyro_fps, lo=1),
-        accel_fps=sec.integer("accel_fps", d.accel_fps, lo=1),
-        decimation=sec.integer("decimation", d.decimation, lo=1),
-        spatial_filter=sec.boolean("spatial_filter", d.spatial_filter),
-        temporal_filter=sec.boolean("temporal_filter", d.temporal_filter),
-    )
+    values = {}
+    for f in dataclasses.fields(RealSenseConfig):
+        rng, choices = field_range(f), field_choices(f)
+        if rng is not None:
+            values[f.name] = sec.ranged(f.name, rng, f.default)
+        elif choices is not None:
+            values[f.name] = sec.string(f.name, f.default, choices=choices)
+        else:
+            values[f.name] = sec.boolean(f.name, f.default)
     sec.done()
+    cfg = RealSenseConfig(**values)
     cfg.validate(f"{sec.source}: {sec.where}" if sec.where else sec.source)
     return cfg

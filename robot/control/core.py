@@ -25,19 +25,31 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from robot.base.errors import RobotError
 from robot.base.samples import WheelOdometry
 from robot.config import RobotConfig
 from robot.control.health import HealthSupervisor
 from robot.control.kinematics import MecanumKinematics
+from robot.control.odometry import OdometryFeed
 from robot.control.path_file import PathPlan
+from robot.control.protective_stop import CLEAR, DISABLED, ProtectiveStop, SafetyDecision
+from robot.control.recovery import RecoverySupervisor
 from robot.control.trajectory import AxisLimiter, Command, TrajectoryController
+from robot.fusion.calibration_filter import CalibrationFilter
 from robot.fusion.ekf import PoseFilter
-from robot.fusion.quality import LOCALIZED, LOST, QualityMonitor, QualityReport
+from robot.fusion.quality import LOCALIZED, LOST, FusedProtection, QualityMonitor, QualityReport
 from robot.localization.localizer import LocalizationResult
+from robot.maps.plane_map import PlaneMap
 
+STILL_SPEED = 0.005  # m/s: slower than this the robot counts as standing still
+STILL_TURN = 0.01  # rad/s
 IDLE = "idle"
 PATH = "path"
 TELEOP = "teleop"
+
+
+class CommandRefused(RobotError):
+    """An operator or fleet request that the robot's present state does not allow, with the reason."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +83,12 @@ class TwistLimiter:
         self._max_dt = c.max_dt
         self._t: Optional[float] = None
 
+    def reset(self) -> None:
+        """Start again from rest (the wheels were stopped behind the limiter's back)."""
+        for lim in self._lim:
+            lim.reset()
+        self._t = None
+
     def step(self, t: float, target: Sequence[float], scale: float) -> Tuple[float, float, float]:
         dt = 0.02 if self._t is None else min(max(t - self._t, 0.0), self._max_dt)
         self._t = t
@@ -82,8 +100,22 @@ class ControllerCore:
     calls it from one thread (the event loop), never concurrently."""
 
     def __init__(self, robot: RobotConfig, *, vision: bool = True, t_start: float = 0.0,
-                 wheel_speed_noise: float = 0.05):
+                 wheel_speed_noise: float = 0.05, plane_map: Optional[PlaneMap] = None,
+                 calibration: Optional[CalibrationFilter] = None):
         self.robot = robot
+        # Online calibration (optional): corrects each plane measurement with the estimated depth
+        # scale and mount before the filter sees it, and learns from what the filter accepted.
+        self.calibration = calibration
+        # The protective stop: scans come from the localization worker (update_scan), the limit is
+        # applied here, on every tick, before the command is turned into wheel speeds.
+        self.safety = ProtectiveStop(robot.safety, robot, plane_map)
+        self.last_safety: Optional[SafetyDecision] = None
+        self._safety_scale = 1.0
+        # When lost or kidnapped: hold still until a relocalization is confirmed.
+        self.recovery = RecoverySupervisor(robot.recovery)
+        self._last_fix = -math.inf  # capture time of the newest accepted camera fix
+        self._odom_speed = 0.0  # m/s and rad/s of the newest wheel odometry
+        self._odom_turn = 0.0
         self.vision = vision
         self.kinematics = MecanumKinematics.from_config(robot.chassis)
         self.filter = PoseFilter(robot.fusion)
@@ -91,6 +123,7 @@ class ControllerCore:
         health_cfg = robot.health if vision else replace(robot.health, vision_required=False)
         self.health = HealthSupervisor(health_cfg, t_start)
         self.wheel_speed_noise = float(wheel_speed_noise)  # rad/s std beyond quantisation (motor ripple)
+        self._odometry = OdometryFeed(self.kinematics, robot.chassis, self.wheel_speed_noise)
         self.mode = IDLE
         self.trajectory: Optional[TrajectoryController] = None
         self._teleop = TwistLimiter(robot)
@@ -100,6 +133,13 @@ class ControllerCore:
         self._t_last_odom = -math.inf
         self._chassis_reason = "chassis link not up yet"
         self._last_quality: Optional[QualityReport] = None
+        # What the last accepted localization adds to the fused pose's protection levels.
+        self._protection: Optional[FusedProtection] = None
+        # Operator entry points (go, extend, pause, speed limit): plans waiting for the current one
+        # to end, a pause that also holds plans started later, a limit at or below control.max_speed.
+        self._queued: List[PathPlan] = []
+        self._paused = False
+        self._speed_limit = robot.control.max_speed
         self.counters: Dict[str, int] = {"odometry": 0, "odometry_rejected": 0, "localizations": 0,
                                          "planes_accepted": 0, "planes_rejected": 0, "ticks": 0,
                                          "ticks_silent": 0}
@@ -109,8 +149,10 @@ class ControllerCore:
     def set_pose(self, t: float, x: float, y: float, phi: float, cov: np.ndarray) -> None:
         self.filter.set_pose(t, x, y, phi, cov)
         self.quality.note_fix(t)
+        self._protection = None  # the pose set comes with its own covariance
         self.health.localization_succeeded(t)
         self._t_last_odom = t
+        self._odometry.reset()
 
     @property
     def initialized(self) -> bool:
@@ -128,12 +170,21 @@ class ControllerCore:
     # -- inputs -----------------------------------------------------------------------------
 
     def on_odometry(self, odo: WheelOdometry, quantisation_variance: float = 0.0) -> bool:
+        if self.calibration is not None:
+            self.calibration.add_odometry(odo)
         if not self.filter.initialized:
             return False
-        var = self.wheel_speed_noise ** 2 + quantisation_variance
-        twist = self.kinematics.forward(odo.speeds)
-        Q = self.kinematics.forward_covariance(var)
-        res = self.filter.predict_twist(odo.t, float(twist[0]), float(twist[1]), float(twist[2]), Q)
+        # A sample spans its own interval; a gap before it (the encoders restarted) gets an input
+        # of its own whose covariance covers the unseen motion, and holds the robot.
+        steps, gap = self._odometry.steps(odo, quantisation_variance, self._t_last_odom)
+        for t, twist, Q in steps:
+            res = self.filter.predict_twist(t, float(twist[0]), float(twist[1]), float(twist[2]), Q)
+            self._odom_speed = math.hypot(float(twist[0]), float(twist[1]))
+            self._odom_turn = float(twist[2])
+        if gap is not None and res.accepted:
+            self.counters["odometry_gaps"] = self.counters.get("odometry_gaps", 0) + 1
+            self.health.note_fault(odo.t, gap)
+            self._restart_from_rest()
         if res.accepted:
             self.counters["odometry"] += 1
             self._t_last_odom = odo.t
@@ -150,8 +201,14 @@ class ControllerCore:
         """Fuse the planes of one localization (frames captured at ``t_capture``)."""
         report = FusionReport(t_capture, camera, fits=len(result.measurements))
         self.counters["localizations"] += 1
-        if not self.vision or not self.filter.initialized or not result.measurements:
+        if not self.vision or not self.filter.initialized:
             return report
+        if not result.measurements:
+            self._note_recovery(result, t_capture, 0)
+            return report
+        raw = result
+        if self.calibration is not None:
+            result = self.calibration.correct(result)
         outcomes = self.filter.update_planes(result.measurements)
         for meas, res in zip(result.measurements, outcomes):
             self.quality.note_update(meas.t_capture, res.accepted)
@@ -163,11 +220,63 @@ class ControllerCore:
         self.counters["planes_rejected"] += len(report.rejected)
         if report.accepted:
             self.health.localization_succeeded(t_capture)
+            self._protection = FusedProtection.from_localization(raw)
+            self._last_fix = max(self._last_fix, t_capture)
+            self.health.note_accepted(t_capture, len(report.accepted))
+        self._note_recovery(result, t_capture, len(report.accepted))
+        if self.calibration is not None and report.accepted:
+            self.calibration.add_localization(raw, t_capture, report.accepted, self.pose(t_capture)[0])
         return report
 
+    def relocalization_due(self, t: float) -> bool:
+        """Whether the shell should relocalize now: asked for by the recovery supervisor, and the
+        robot has braked to a standstill (frames of a moving robot would describe a blur of poses)."""
+        if abs(self._odom_speed) > STILL_SPEED or abs(self._odom_turn) > STILL_TURN:
+            return False
+        return self.recovery.wants_relocalization(t)
+
+    def _note_recovery(self, result: LocalizationResult, t_capture: float, accepted: int) -> None:
+        """Tell the recovery supervisor how this view agreed with the pose. Predicted walls with a
+        large region of interest and no fit at all disagree as much as fits the gate rejects."""
+        fitted = len(result.measurements)
+        if fitted == 0:
+            big = sum(1 for r in result.planes if getattr(r, "roi_points", 0) >= self.robot.localizer.min_inliers)
+            fitted = big if big >= 1 else 0
+        self.recovery.on_fusion(t_capture, fitted, accepted)
+
     def set_chassis_link(self, ok: bool, reason: str = "") -> None:
-        self.health.chassis_ok = bool(ok)
+        self.health.note_link(ok, reason)  # a change is a fault: the robot is held until confirmed
         self._chassis_reason = reason or ("" if ok else "chassis link down")
+
+    def note_fault(self, t: float, reason: str) -> None:
+        """A fault the shell saw (the board reconnected, the loop missed its deadlines): the robot
+        comes back stopped, its limiters start from rest, and the mission waits for a confirmed pose."""
+        self.health.note_fault(t, reason)
+        self._restart_from_rest()
+
+    def _restart_from_rest(self) -> None:
+        self.counters["faults"] = self.counters.get("faults", 0) + 1
+        if self.trajectory is not None:
+            self.trajectory.reset_motion()
+        self._teleop.reset()
+
+    def _fault_hold(self, t: float, P: np.ndarray, scale: float, reason: str) -> Tuple[float, str]:
+        """While held after a fault: speed scale 0 and the path held, until the pose is confirmed."""
+        if not self.health.holding:
+            return scale, reason
+        if self.mode != PATH:  # an operator drives by hand: the limiters already start from rest
+            self.health.clear_fault()
+            return scale, reason
+        P_xy = np.asarray(P, dtype=float)[:2, :2]
+        pos_std = math.sqrt(max(0.0, float(np.linalg.eigvalsh(P_xy)[-1]))) if np.isfinite(P_xy).all() else math.inf
+        released, why = self.health.release(t, pos_std, self._t_last_odom)
+        if released:
+            if self.trajectory is not None:
+                self.trajectory.release()
+            return scale, reason
+        if self.trajectory is not None:
+            self.trajectory.hold(why)
+        return 0.0, why
 
     # -- missions ---------------------------------------------------------------------------
 
@@ -188,13 +297,99 @@ class ControllerCore:
 
     @property
     def finished(self) -> bool:
-        return self.mode == PATH and self.trajectory is not None and self.trajectory.finished
+        return self.mode == PATH and self.trajectory is not None and self.trajectory.finished and not self._queued
+
+    # -- operator entry points (control socket, fleet link) ---------------------------------
+
+    @property
+    def mission_active(self) -> bool:
+        """A path is being driven, braked or waited for (paused counts as active)."""
+        return self.mode == PATH and (bool(self._queued) or (self.trajectory is not None and not self.trajectory.finished))
+
+    @property
+    def paused(self) -> bool:
+        return self._paused
+
+    def go(self, plan: PathPlan, replace: bool = False) -> None:
+        """Start a new mission. While one runs: CommandRefused, or with ``replace`` brake it to rest
+        within the limits (never a jump in speed) and start ``plan`` from there."""
+        if self.mode == TELEOP:
+            raise CommandRefused("the robot is teleoperated: it takes no missions")
+        if self.mission_active:
+            if not replace:
+                raise CommandRefused(f"a mission is running ({self.trajectory.state}, waypoint "
+                                     f"{self.trajectory.waypoint_index + 1} of {len(self.trajectory.plan.waypoints)}): "
+                                     "abort it first or replace it")
+            self.trajectory.abort("replaced by a new mission")
+            self._queued = [plan]
+            return
+        self._start(plan)
+
+    def extend(self, plan: PathPlan) -> None:
+        """Drive ``plan`` once the current plan has ended (at once when none runs)."""
+        if self.mode == TELEOP:
+            raise CommandRefused("the robot is teleoperated: it takes no missions")
+        if self.mission_active:
+            self._queued.append(plan)
+        else:
+            self._start(plan)
+
+    def abort(self, reason: str = "aborted by operator") -> bool:
+        """Brake within the limits and end the mission; False when there was none."""
+        self._queued.clear()
+        if self.trajectory is None or self.trajectory.finished:
+            return False
+        self.trajectory.abort(reason)
+        return True
+
+    def pause(self) -> None:
+        """Brake to rest within the limits and hold, from the next tick on, also plans started while
+        paused (applied after the tick's step: a trajectory has its first segment only then)."""
+        self._paused = True
+
+    def resume(self) -> None:
+        self._paused = False
+        self.health.acknowledge()  # with resume_after_fault: command, a fault hold waits for this
+        if self.trajectory is not None:
+            self.trajectory.resume()
+
+    @property
+    def speed_limit(self) -> float:
+        return self._speed_limit
+
+    def set_speed_limit(self, speed: Optional[float]) -> float:
+        """Lower the cruise speed limit at run time (None: back to control.max_speed); the new limit."""
+        cap = self.robot.control.max_speed
+        if speed is None:
+            self._speed_limit = cap
+            return cap
+        v = float(speed)
+        if not (math.isfinite(v) and v > 0.0):
+            raise CommandRefused(f"a speed limit must be a finite number above 0 m/s, got {v}")
+        if v > cap:
+            raise CommandRefused(f"a speed limit of {v:g} m/s is above the configured control.max_speed ({cap:g} m/s)")
+        self._speed_limit = v
+        return v
+
+    def _start(self, plan: PathPlan) -> None:
+        self.follow(plan)
+
+    def _limit_scale(self) -> float:
+        """The speed scale that keeps the cruise speed at or below the run-time limit (it goes through
+        the trajectory's limiters like any slow-down, so lowering it never jerks the robot)."""
+        cap = self.robot.control.max_speed
+        if self._speed_limit >= cap:
+            return 1.0
+        cruise = cap
+        if self.mode == PATH and self.trajectory is not None and self.trajectory.waypoint_index < len(self.trajectory.plan.waypoints):
+            cruise = min(self.trajectory.plan.waypoints[self.trajectory.waypoint_index].speed, cap)
+        return min(1.0, self._speed_limit / cruise)
 
     # -- the control tick -------------------------------------------------------------------
 
     def evaluate_quality(self, t: float) -> QualityReport:
         _, P = self.pose(t) if self.filter.initialized else (None, np.full((3, 3), np.inf))
-        self._last_quality = self.quality.evaluate(t, P)
+        self._last_quality = self.quality.evaluate(t, P, self._protection)
         return self._last_quality
 
     def speed_scale(self, t: float, quality: QualityReport) -> Tuple[float, str]:
@@ -203,23 +398,44 @@ class ControllerCore:
             return 0.0, f"no wheel odometry for {t - self._t_last_odom:.2f} s: pose is stale"
         if scale > 0.0 and self.vision and self.health.config.vision_required and quality.state == LOST:
             return 0.0, f"localization lost: {quality.reason}"
+        if self.vision and self.health.config.vision_required and quality.protection_exceeded \
+                and scale > self.health.config.slow_scale:
+            # The pose cannot be vouched for to the alert limits: drive as slowly as when degraded.
+            return self.health.config.slow_scale, f"localization degraded: {quality.reason}"
         return scale, ("" if scale >= 1.0 else reason)
 
     def control_step(self, t: float) -> ControlOutput:
         self.counters["ticks"] += 1
+        if self.health.note_tick(t, 1.0 / self.robot.control.rate) is not None:
+            self._restart_from_rest()  # a stall or a link change: the board has stopped the wheels
         if not self.filter.initialized:
             return self._silent(t, "no pose yet")
         quality = self.evaluate_quality(t)
         scale, reason = self.speed_scale(t, quality)
-        (x, y, phi), _ = self.pose(t)
+        if self.vision:  # without vision there is nothing to relocalize with (odometry-only runs)
+            self.recovery.on_quality(t, quality.state)
+        if self.vision and self.recovery.holding:  # brake within the limits and hold until confirmed
+            scale, reason = 0.0, f"{self.recovery.state}: {self.recovery.reason}"
+        (x, y, phi), P = self.pose(t)
+        scale, reason = self._fault_hold(t, P, scale, reason)
+        if self._queued and self.trajectory is not None and self.trajectory.finished:
+            self._start(self._queued.pop(0))
         if self.mode == PATH and self.trajectory is not None:
-            cmd = self.trajectory.step(t, (x, y, phi), scale)
+            # The protective stop's last limit also slows the plan, so that it decelerates
+            # smoothly instead of being cut every tick.
+            confirmed = not (self.vision and self.recovery.doubting)
+            last_fix = self._last_fix if self.vision else None
+            cmd = self.trajectory.step(t, (x, y, phi), min(scale, self._safety_scale) * self._limit_scale(), confirmed,
+                                       last_fix)
+            if self._paused:
+                self.trajectory.pause()
         elif self.mode == TELEOP:
             target = self._teleop_target if t - self._teleop_t <= self.teleop_deadman else (0.0, 0.0, 0.0)
-            vx, vy, wz = self._teleop.step(t, target, scale)
+            vx, vy, wz = self._teleop.step(t, target, scale * self._limit_scale())
             cmd = Command(vx, vy, wz, t, TELEOP, 0)
         else:
             cmd = Command(0.0, 0.0, 0.0, t, IDLE, 0)
+        cmd, reason = self._protective_stop(t, cmd, (x, y, phi), reason)
         if not self.health.chassis_ok:
             return self._silent(t, self._chassis_reason or "chassis link down", cmd)
         if not self.health.command_fresh(cmd.t_issued, t):
@@ -229,6 +445,22 @@ class ControllerCore:
         if not np.isfinite(wheels).all():
             return self._silent(t, "non-finite wheel command refused", cmd)
         return ControlOutput(t, cmd, tuple(float(w) for w in wheels), scale, reason)  # type: ignore[arg-type]
+
+    def _protective_stop(self, t: float, cmd: Command, pose, reason: str) -> Tuple[Command, str]:
+        """The command limited by the obstacle picture (stop, slow-down and blind zones)."""
+        d = self.safety.limit(t, (cmd.vx, cmd.vy, cmd.wz), pose)
+        self.last_safety = d
+        max_speed = self.robot.control.max_speed
+        self._safety_scale = 1.0 if d.speed_limit == float("inf") else min(1.0, d.speed_limit / max_speed)
+        if d.zone in (CLEAR, DISABLED):
+            return cmd, reason
+        why = f"protective {d.zone}: {d.reason}"
+        reason = f"{reason}; {why}" if reason else why
+        if d.twist == (cmd.vx, cmd.vy, cmd.wz):  # already within what the zone allows (slowed last tick)
+            return cmd, reason
+        self.counters["safety_limited"] = self.counters.get("safety_limited", 0) + 1
+        self.counters[f"safety_{d.zone}"] = self.counters.get(f"safety_{d.zone}", 0) + 1
+        return replace(cmd, vx=d.twist[0], vy=d.twist[1], wz=d.twist[2]), reason
 
     def _silent(self, t: float, reason: str, cmd: Optional[Command] = None) -> ControlOutput:
         self.counters["ticks_silent"] += 1
@@ -250,4 +482,13 @@ class ControllerCore:
             out.update({"path_state": self.trajectory.state, "waypoint": self.trajectory.waypoint_index,
                         "waypoints": len(self.trajectory.plan.waypoints)})
         out["localized"] = out.get("quality") == LOCALIZED
+        out["recovery"] = self.recovery.to_json()
+        if self.calibration is not None:
+            out["calibration"] = self.calibration.status()
+        out["fault"] = self.health.fault
+        if self.last_safety is not None:
+            s = self.last_safety
+            out["safety"] = {"zone": s.zone, "reason": s.reason,
+                             "free_distance": None if s.free_distance == float("inf") else s.free_distance,
+                             "speed_limit": None if s.speed_limit == float("inf") else s.speed_limit}
         return out

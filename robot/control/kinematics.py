@@ -1,6 +1,6 @@
 """Mecanum kinematics: body twist <-> wheel speeds, and exact planar integration. Pure numpy.
 
-Conventions (DESIGN.md section 2): robot frame x forward, y left, z up; twist (vx, vy, wz) in
+Conventions (docs/architecture.md, 'Frames and units'): robot frame x forward, y left, z up; twist (vx, vy, wz) in
 the robot frame (m/s, m/s, rad/s, wz counter-clockwise seen from above). Wheel order FL, FR,
 RL, RR; a positive wheel speed turns the wheel so that it rolls the robot forward (+x).
 

@@ -12,42 +12,71 @@ YAML (SI units, angles in radians)::
 ``speed`` is the cruise speed towards that waypoint (m/s), ``tolerance`` the arrival radius (m),
 ``heading_tolerance`` (rad) applies when a heading is given, ``dwell`` (s) is a stop at the
 waypoint after arrival. Reading is strict: unknown keys, missing x/y, non-numbers, NaN,
-non-positive speeds or tolerances and an empty list are refused with a ConfigError naming the
-file and the waypoint, before any motion.
+values outside their ranges (declared on the fields below, listed in ``docs/configuration.md``)
+and an empty list are refused with a ConfigError naming the file and the waypoint, before any
+motion. The file is read through ``robot.base.files`` (regular files up to 1 MiB).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import MISSING, dataclass
 from typing import Optional, Sequence, Tuple
 
 from robot.base.errors import ConfigError
-from robot.config.schema import Section, load_yaml_file
+from robot.base.files import PATH_FILE
+from robot.config.ranges import check_fields, field_range, number
+from robot.config.schema import Section, check_number, load_yaml_file
 
 DEFAULT_SPEED = 0.15  # m/s
 DEFAULT_TOLERANCE = 0.01  # m
 DEFAULT_HEADING_TOLERANCE = math.radians(2.0)
 MAX_SPEED = 2.0  # m/s: anything faster in a path file is a typo (the controller clamps further)
 MAX_ANGLE = 2.0 * math.pi  # |heading| beyond one turn is almost surely degrees
+MAX_COORDINATE = 1000.0  # m: a site is smaller than 2 km across; larger values are unit mistakes
+MAX_WAYPOINTS = 10_000
+MAX_DESCRIPTION_CHARS = 10_000
+
+
+def _coordinate(axis: str):
+    return number(MISSING, -MAX_COORDINATE, MAX_COORDINATE, "m", f"{axis} in the ground frame G")
+
+
+def _heading_field(default, doc: str):
+    return number(default, -MAX_ANGLE, MAX_ANGLE, "rad", doc, text="-2 pi to 2 pi rad")
 
 
 @dataclass(frozen=True)
 class StartPose:
-    x: float
-    y: float
-    heading: float = 0.0
+    x: float = _coordinate("x")
+    y: float = _coordinate("y")
+    heading: float = _heading_field(0.0, "heading in G, counter-clockwise from +x")
+
+    def __post_init__(self):
+        check_fields(self, "start")
 
 
 @dataclass(frozen=True)
 class Waypoint:
-    x: float
-    y: float
-    heading: Optional[float] = None  # rad in G; None = keep the heading the robot has
-    speed: float = DEFAULT_SPEED
-    tolerance: float = DEFAULT_TOLERANCE
-    heading_tolerance: float = DEFAULT_HEADING_TOLERANCE
-    dwell: float = 0.0
+    x: float = _coordinate("x")
+    y: float = _coordinate("y")
+    heading: Optional[float] = _heading_field(None, "heading in G; absent: keep the heading the robot has")
+    speed: float = number(DEFAULT_SPEED, 0.0, MAX_SPEED, "m/s", "cruise speed towards the waypoint", lo_open=True)
+    tolerance: float = number(DEFAULT_TOLERANCE, 0.0, 1.0, "m", "arrival radius", lo_open=True)
+    heading_tolerance: float = number(DEFAULT_HEADING_TOLERANCE, 0.0, math.pi, "rad",
+                                      "heading arrival tolerance, when a heading is given", lo_open=True,
+                                      text="above 0 up to pi rad")
+    dwell: float = number(0.0, 0.0, 3600.0, "s", "stop at the waypoint after arrival")
+
+    def __post_init__(self):
+        if self.heading is None:  # None is allowed here and only here
+            check_fields(dataclasses.replace(self, heading=0.0), "waypoint")
+        else:
+            check_fields(self, "waypoint")
+
+
+_RANGES = {f.name: field_range(f) for f in dataclasses.fields(Waypoint)}
 
 
 @dataclass(frozen=True)
@@ -62,40 +91,39 @@ def _heading(sec: Section, key: str) -> Optional[float]:
     if not sec.has(key):
         sec.raw(key, None)
         return None
-    val = sec.number(key)
+    val = check_number(sec.raw(key), key, sec)
     if abs(val) > MAX_ANGLE:
-        sec.fail(f"'{key}' is in radians and must be within +-2 pi, got {val} (degrees?)")
+        sec.fail(f"'{key}' is in radians and must be within +-2 pi, got {val:.6g} (degrees?)")
     return val
 
 
 def parse_path(data, source: str = "<path>") -> PathPlan:
     top = Section(data, "", source)
     description = top.string("description", "") if top.has("description") else ""
+    if len(description) > MAX_DESCRIPTION_CHARS:
+        top.fail(f"'description' is longer than {MAX_DESCRIPTION_CHARS} characters")
     start = None
     if top.has("start"):
         s = top.sub("start")
-        start = StartPose(s.number("x"), s.number("y"), _heading(s, "heading") or 0.0)
+        start = StartPose(s.ranged("x", _RANGES["x"]), s.ranged("y", _RANGES["y"]), _heading(s, "heading") or 0.0)
         s.done()
     d = top.sub("defaults")
-    speed = d.number("speed", DEFAULT_SPEED, positive=True, hi=MAX_SPEED)
-    tolerance = d.number("tolerance", DEFAULT_TOLERANCE, positive=True, hi=1.0)
-    heading_tolerance = d.number("heading_tolerance", DEFAULT_HEADING_TOLERANCE, positive=True, hi=math.pi)
-    dwell = d.number("dwell", 0.0, lo=0.0, hi=3600.0)
+    defaults = {key: d.ranged(key, _RANGES[key], getattr(Waypoint, key))
+                for key in ("speed", "tolerance", "heading_tolerance", "dwell")}
     d.done()
     raw = top.raw("waypoints")
     if not isinstance(raw, list) or not raw:
         top.fail("'waypoints' must be a non-empty list")
+    if len(raw) > MAX_WAYPOINTS:
+        top.fail(f"'waypoints' lists {len(raw)} waypoints, at most {MAX_WAYPOINTS} are allowed")
     waypoints = []
     for i, item in enumerate(raw):
         w = Section(item, f"waypoints[{i}]", source)
         waypoints.append(Waypoint(
-            x=w.number("x"),
-            y=w.number("y"),
+            x=w.ranged("x", _RANGES["x"]),
+            y=w.ranged("y", _RANGES["y"]),
             heading=_heading(w, "heading"),
-            speed=w.number("speed", speed, positive=True, hi=MAX_SPEED),
-            tolerance=w.number("tolerance", tolerance, positive=True, hi=1.0),
-            heading_tolerance=w.number("heading_tolerance", heading_tolerance, positive=True, hi=math.pi),
-            dwell=w.number("dwell", dwell, lo=0.0, hi=3600.0),
+            **{key: w.ranged(key, _RANGES[key], value) for key, value in defaults.items()},
         ))
         w.done()
     top.done()
@@ -103,7 +131,7 @@ def parse_path(data, source: str = "<path>") -> PathPlan:
 
 
 def load_path(path) -> PathPlan:
-    return parse_path(load_yaml_file(path), source=str(path))
+    return parse_path(load_yaml_file(path, PATH_FILE), source=str(path))
 
 
 def check_path_in_bounds(plan: PathPlan, lo: Sequence[float], hi: Sequence[float], margin: float = 0.0) -> None:

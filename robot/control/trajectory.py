@@ -24,6 +24,10 @@ Model and conventions:
   ``pause()`` brakes to zero within the limits and holds; ``resume()`` continues (also clears
   ``error``); ``abort()`` brakes within the limits and ends. A non-finite pose gives a zero
   command at once and latches ``error`` until ``resume()``: no command is ever NaN.
+- After a fault (a host stall, a lost link: the board's watchdog has stopped the wheels) the
+  core calls ``reset_motion()``, so the limiters start again from rest and never send the speed
+  they had before, and ``hold()`` until the pose is confirmed (shown as ``paused``), then
+  ``release()``.
 """
 
 from __future__ import annotations
@@ -120,6 +124,8 @@ class TrajectoryController:
         self._index = 0
         self._state = FOLLOWING
         self._paused = False
+        self._held: Optional[str] = None  # why the core holds the robot after a fault
+        self._arrived_t = -math.inf  # when the current waypoint was reached
         self._reason = ""
         self._t_last: Optional[float] = None
         self._seg_start: Optional[Tuple[float, float]] = None
@@ -144,9 +150,24 @@ class TrajectoryController:
             self._state = ABORTED
             self._reason = reason
 
+    def hold(self, reason: str) -> None:
+        """Stand still (a zero target) until ``release``, apart from the operator's pause."""
+        self._held = reason
+
+    def release(self) -> None:
+        self._held = None
+
+    def reset_motion(self) -> None:
+        """The wheels were stopped behind the controller's back: start the limiters from rest."""
+        for lim in self._lim:
+            lim.reset()
+        self._t_last = None
+        self._last = None
+
     @property
     def state(self) -> str:
-        return PAUSED if self._paused and self._state in (FOLLOWING, ARRIVED) else self._state
+        stopped = self._paused or self._held is not None
+        return PAUSED if stopped and self._state in (FOLLOWING, ARRIVED) else self._state
 
     @property
     def waypoint_index(self) -> int:
@@ -159,7 +180,12 @@ class TrajectoryController:
 
     # -- the control tick -----------------------------------------------------------------------
 
-    def step(self, t: float, pose: Sequence[float], speed_scale: float = 1.0) -> Command:
+    def step(self, t: float, pose: Sequence[float], speed_scale: float = 1.0, confirmed: bool = True,
+             last_fix: Optional[float] = None) -> Command:
+        """One tick. ``confirmed`` False (the views currently disagree with the pose): a waypoint
+        may be approached and held, but its dwell does not count. ``last_fix``: capture time of
+        the newest accepted camera fix (None without vision): a dwell only ends after a fix taken
+        since the arrival, so a waypoint is never declared reached on a pose no view confirmed."""
         cfg = self.config
         if self._t_last is not None and not t > self._t_last and self._last is not None:
             return self._last  # same tick again: nothing new to integrate
@@ -180,16 +206,16 @@ class TrajectoryController:
         scale = min(max(scale, 0.0), 1.0)
 
         target = (0.0, 0.0, 0.0)
-        if self._state in (FOLLOWING, ARRIVED) and not self._paused:
-            self._advance(t, dt, x, y, phi)
-        if self._state in (FOLLOWING, ARRIVED):
+        stopped = self._paused or self._held is not None
+        if self._state in (FOLLOWING, ARRIVED) and not stopped:
+            self._advance(t, dt, x, y, phi, confirmed, last_fix)
+        if self._state in (FOLLOWING, ARRIVED) and not stopped:
             target = self._target_twist(x, y, phi, scale)
-            if self._paused:
-                target = (0.0, 0.0, 0.0)
         vx = self._lim[0].step(target[0], dt)
         vy = self._lim[1].step(target[1], dt)
         wz = self._lim[2].step(target[2], dt)
-        return self._emit(Command(vx, vy, wz, t, self.state, self._index, self._reason))
+        reason = f"held: {self._held}" if self._held is not None else self._reason
+        return self._emit(Command(vx, vy, wz, t, self.state, self._index, reason))
 
     def _emit(self, cmd: Command) -> Command:
         self._last = cmd
@@ -210,7 +236,8 @@ class TrajectoryController:
         if wp.heading is not None:
             self._heading_goal = wp.heading
 
-    def _advance(self, t: float, dt: float, x: float, y: float, phi: float) -> None:
+    def _advance(self, t: float, dt: float, x: float, y: float, phi: float, confirmed: bool = True,
+                 last_fix: Optional[float] = None) -> None:
         """Waypoint bookkeeping: arrival, dwell, next waypoint, done."""
         if self._seg_start is None:
             self._activate(x, y, phi)
@@ -218,8 +245,14 @@ class TrajectoryController:
         if self._state == FOLLOWING and self._arrived(wp, x, y, phi):
             self._state = ARRIVED
             self._dwell_left = wp.dwell
+            self._arrived_t = t
         if self._state == ARRIVED:
+            if not confirmed:
+                self._dwell_left = wp.dwell  # the dwell starts again once the pose is confirmed
+                return
             self._dwell_left -= dt
+            if self._dwell_left <= 0.0 and last_fix is not None and last_fix < self._arrived_t:
+                return  # dwell over, but no view has confirmed the arrival yet: keep holding
             if self._dwell_left <= 0.0:
                 self._index += 1
                 if self._index >= len(self.plan.waypoints):

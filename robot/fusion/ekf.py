@@ -1,4 +1,4 @@
-"""Pose fusion (DESIGN.md section 4 step 5): an EKF on (x, y, phi) in G, built on filterpy.
+"""Pose fusion (see docs/architecture.md, 'EKF'): an EKF on (x, y, phi) in G, built on filterpy.
 
 Model and conventions:
 
@@ -28,6 +28,16 @@ Model and conventions:
   odometry interval split by a measurement keeps the same total noise. Between the last
   odometry input and a later time the last twist is held for ``hold`` seconds, then the robot
   is assumed still; those states are provisional and are recomputed when odometry arrives.
+  Their covariance grows by half the held displacement, since the robot may have stopped at
+  once or kept going.
+- Gaps: an odometry interval longer than ``max_odom_interval`` (a serial dropout, a host stall
+  bridged by cumulative ticks) gives the exact total displacement, but not when it happened:
+  the robot may have braked at the start and stood, or rolled on evenly. A fix inside such an
+  interval splits it, and each piece's mean is still its share of the displacement, but each
+  piece also gets the covariance of that unknown timing, ``(max(f, 1 - f) / 2)^2 g g^T`` plus a
+  quarter of it on the diagonal (f the piece's share, g the interval's displacement in G): so the
+  fix is gated against where the robot may really have been, and the estimate follows it. An
+  interval no fix splits keeps its exact displacement and costs nothing extra.
 """
 
 from __future__ import annotations
@@ -160,6 +170,15 @@ class _Checkpoint:
 def _after_odom(t: float) -> Key:
     """The smallest key after the odometry input at t (and before any fix at t)."""
     return (t, _KIND_ODOM, "", "", 1)
+
+
+def _spread(phi: float, inc: np.ndarray, scale: float) -> np.ndarray:
+    """Covariance of an unknown share (std ``scale``) of the body increment ``inc`` taken at heading
+    phi: along the increment in G, plus a quarter of it per axis for a path that was not straight."""
+    c, s = math.cos(phi), math.sin(phi)
+    g = np.array([c * inc[0] - s * inc[1], s * inc[0] + c * inc[1], inc[2]])
+    d2 = float(g[0] * g[0] + g[1] * g[1])
+    return (scale * scale) * (np.outer(g, g) + 0.25 * np.diag([d2, d2, float(g[2] * g[2])]))
 
 
 def _finite(*arrays) -> bool:
@@ -482,9 +501,16 @@ class PoseFilter:
         i = bisect.bisect_left(self._odom_t, t1)
         if i < len(self._odom):
             twist, Q, dt_int = self._interval_twist(i)
+            piece = t1 - t0
+            timing = None
+            if dt_int > self.config.max_odom_interval and piece < dt_int * (1.0 - 1e-9):
+                # A gap split by a fix: where in the gap the motion happened is unknown.
+                inc, _ = body_increment(twist, dt_int)
+                f = piece / dt_int
+                timing = _spread(x[2], inc, 0.5 * max(f, 1.0 - f))
             # The twist error is one draw for the whole interval: a piece of length dt gets the
             # share dt/dt_int of its variance so split intervals add up to the same total.
-            return self._predict_segment(x, P, twist, Q, t1 - t0, dt_int / (t1 - t0))
+            return self._predict_segment(x, P, twist, Q, piece, dt_int / piece, timing)
         if not self._odom:
             return self._predict_segment(x, P, np.zeros(3), np.zeros((3, 3)), t1 - t0, 1.0)
         last = len(self._odom) - 1
@@ -492,13 +518,15 @@ class PoseFilter:
         hold_end = self._odom[last].t + self.config.hold
         if t0 < hold_end:
             t_mid = min(t1, hold_end)
-            x, P = self._predict_segment(x, P, twist, Q, t_mid - t0, 1.0)
+            inc, _ = body_increment(twist, t_mid - t0)
+            # Provisional: the robot may have stopped at once or kept going.
+            x, P = self._predict_segment(x, P, twist, Q, t_mid - t0, 1.0, _spread(x[2], inc, 0.5))
             t0 = t_mid
         if t1 > t0:
             x, P = self._predict_segment(x, P, np.zeros(3), np.zeros((3, 3)), t1 - t0, 1.0)
         return x, P
 
-    def _predict_segment(self, x, P, twist, Q_twist, dt: float, q_scale: float):
+    def _predict_segment(self, x, P, twist, Q_twist, dt: float, q_scale: float, extra: Optional[np.ndarray] = None):
         cfg = self.config
         inc, D = body_increment(twist, dt)
         phi = float(x[2])
@@ -514,6 +542,8 @@ class PoseFilter:
         ekf.P = P.copy()
         ekf.F = np.array([[1.0, 0.0, -(s * inc[0] + c * inc[1])], [0.0, 1.0, c * inc[0] - s * inc[1]], [0.0, 0.0, 1.0]])
         ekf.Q = q_scale * (G @ Q_twist @ G.T) + np.diag([var_pos, var_pos, var_phi])
+        if extra is not None:
+            ekf.Q = ekf.Q + extra
         ekf.predict(u=inc)
         xn = ekf.x.reshape(3).copy()
         xn[2] = wrap_angle(float(xn[2]))

@@ -12,10 +12,19 @@ covariance of (x, y, phi). Rules, checked in this order (defaults in :class:`Qua
   only), the position std exceeds ``localized_pos_std`` (0.02 m), the heading std exceeds
   ``localized_heading_std_deg`` (1 deg), or the gate refused at least ``degraded_rejection_ratio``
   (50 %) of the recent planes.
+- ``degraded`` also when a protection level of the fused pose exceeds its alert limit
+  (``horizontal_alert_limit``, 0.10 m; ``heading_alert_limit_deg``, 3 deg): the pose cannot be
+  vouched for to the accuracy the robot needs, at the integrity risk the localizer works to.
 - ``localized`` otherwise.
 
+Protection levels of the fused pose (:class:`FusedProtection`, docs/localization-integrity.md):
+bounds k sigma of the filter's covariance plus what the filter cannot average away, the
+systematic part of the last accepted localization's covariance (depth scale, mounts, walls as
+built are the same in every frame), plus the largest separation between that localization and
+its leave-one-out solutions (how far one wrong wall could have moved it unseen).
+
 The position reason names the poorly known direction, so a corridor (parallel walls only) says
-which way the position is unobservable instead of inventing it (DESIGN.md section 4). To stop
+which way the position is unobservable instead of inventing it (docs/architecture.md, 'Pose solver'). To stop
 the state flickering at a threshold, a worse state is left only once the numbers are back
 below ``hysteresis`` (80 %) of the threshold that put it there. A pose reset (``note_fix``)
 counts as an accepted update for the age rules, like Nav2 AMCL's initial pose.
@@ -31,13 +40,39 @@ from typing import Deque, List, Optional, Tuple
 import numpy as np
 
 from robot.config import QualityConfig
+from robot.localization.integrity import protection_multipliers
 
 LOCALIZED = "localized"
 DEGRADED = "degraded"
 LOST = "lost"
 _RANK = {LOCALIZED: 0, DEGRADED: 1, LOST: 2}
+DEFAULT_RISK = 1e-3
 
 
+@dataclass(frozen=True)
+class FusedProtection:
+    """What the last accepted localization adds to the fused pose's protection levels."""
+
+    systematic_cov: Optional[np.ndarray] = None  # (3, 3) shared-error part of its covariance
+    separation_h: float = 0.0  # m: its largest all-in to leave-one-out separation, horizontal
+    separation_heading: float = 0.0  # rad
+    risk: float = DEFAULT_RISK
+
+    @classmethod
+    def from_localization(cls, result) -> FusedProtection:
+        info = getattr(result, "integrity", {}) or {}
+        return cls(getattr(result, "systematic_cov", None), float(info.get("separation_m") or 0.0),
+                   float(info.get("separation_rad") or 0.0), float(getattr(result, "risk", DEFAULT_RISK)))
+
+    def levels(self, P: np.ndarray) -> Tuple[float, float]:
+        """(horizontal m, heading rad) protection levels of a fused pose with covariance P."""
+        k_h, k_phi = protection_multipliers(self.risk)
+        C = np.asarray(P, float)
+        if self.systematic_cov is not None:
+            C = C + np.asarray(self.systematic_cov, float)
+        lam = float(np.linalg.eigvalsh(0.5 * (C[:2, :2] + C[:2, :2].T))[-1])
+        return (k_h * math.sqrt(max(lam, 0.0)) + self.separation_h,
+                k_phi * math.sqrt(max(float(C[2, 2]), 0.0)) + self.separation_heading)
 
 
 @dataclass(frozen=True)
@@ -48,11 +83,15 @@ class QualityReport:
     heading_std: float  # rad
     since_accepted: float  # s since the last accepted plane or pose reset (inf: never)
     rejection_ratio: float  # over the window; nan when too few decisions
+    horizontal_pl: float = math.inf  # m, protection level of the fused position
+    heading_pl: float = math.inf  # rad
+    protection_exceeded: bool = False  # a protection level is over its alert limit (the controller slows down)
 
     def as_dict(self) -> dict:
         return {"state": self.state, "reason": self.reason, "pos_std": self.pos_std,
                 "heading_std_deg": math.degrees(self.heading_std), "since_accepted": self.since_accepted,
-                "rejection_ratio": self.rejection_ratio}
+                "rejection_ratio": self.rejection_ratio, "horizontal_pl": self.horizontal_pl,
+                "heading_pl_deg": math.degrees(self.heading_pl), "protection_exceeded": self.protection_exceeded}
 
 
 def position_std_axis(P: np.ndarray) -> Tuple[float, float]:
@@ -91,7 +130,9 @@ class QualityMonitor:
         if accepted and (self._last_accepted is None or t > self._last_accepted):
             self._last_accepted = t
 
-    def evaluate(self, t: float, P: np.ndarray) -> QualityReport:
+    def evaluate(self, t: float, P: np.ndarray, protection: Optional[FusedProtection] = None) -> QualityReport:
+        """The state at t from the fused covariance P and what the last accepted localization adds
+        to its protection levels (None: the covariance alone)."""
         cfg = self.config
         while self._decisions and self._decisions[0][0] < t - cfg.rejection_window:
             self._decisions.popleft()
@@ -104,6 +145,7 @@ class QualityMonitor:
             return self._set(LOST, "covariance is not finite", math.inf, math.inf, age, ratio)
         pos_std, axis = position_std_axis(P)
         heading_std = math.sqrt(max(float(P[2, 2]), 0.0))
+        hpl, vpl = (protection or FusedProtection()).levels(P)
 
         # Thresholds are tightened by the hysteresis factor for the states we are trying to leave.
         def scale(level: str) -> float:
@@ -112,15 +154,23 @@ class QualityMonitor:
         lost_reasons = self._reasons(
             cfg.lost_after * scale(LOST), cfg.lost_pos_std * scale(LOST), cfg.lost_heading_std_deg * scale(LOST),
             cfg.lost_rejection_ratio * scale(LOST), age, pos_std, axis, heading_std, ratio, rejected, n)
+        over = []
+        if hpl > cfg.horizontal_alert_limit * scale(DEGRADED):
+            over.append(f"horizontal protection level {hpl * 1000:.0f} mm over the {cfg.horizontal_alert_limit * 1000:.0f} "
+                        "mm alert limit")
+        if math.degrees(vpl) > cfg.heading_alert_limit_deg * scale(DEGRADED):
+            over.append(f"heading protection level {math.degrees(vpl):.1f} deg over the {cfg.heading_alert_limit_deg:g} "
+                        "deg alert limit")
+        pl = (hpl, vpl, bool(over))
         if lost_reasons:
-            return self._set(LOST, "; ".join(lost_reasons), pos_std, heading_std, age, ratio)
+            return self._set(LOST, "; ".join(lost_reasons), pos_std, heading_std, age, ratio, *pl)
         deg_reasons = self._reasons(
             cfg.localized_within * scale(DEGRADED), cfg.localized_pos_std * scale(DEGRADED),
             cfg.localized_heading_std_deg * scale(DEGRADED), cfg.degraded_rejection_ratio * scale(DEGRADED),
-            age, pos_std, axis, heading_std, ratio, rejected, n)
+            age, pos_std, axis, heading_std, ratio, rejected, n) + over
         if deg_reasons:
-            return self._set(DEGRADED, "; ".join(deg_reasons), pos_std, heading_std, age, ratio)
-        return self._set(LOCALIZED, "", pos_std, heading_std, age, ratio)
+            return self._set(DEGRADED, "; ".join(deg_reasons), pos_std, heading_std, age, ratio, *pl)
+        return self._set(LOCALIZED, "", pos_std, heading_std, age, ratio, *pl)
 
     @staticmethod
     def _reasons(max_age, max_pos, max_heading_deg, max_ratio, age, pos_std, axis, heading_std, ratio,
@@ -136,6 +186,7 @@ class QualityMonitor:
             out.append(f"gate refused {rejected} of {n} recent planes")
         return out
 
-    def _set(self, state, reason, pos_std, heading_std, age, ratio) -> QualityReport:
+    def _set(self, state, reason, pos_std, heading_std, age, ratio, hpl=math.inf, vpl=math.inf,
+             over=False) -> QualityReport:
         self._state, self._reason, self._fresh = state, reason, False
-        return QualityReport(state, reason, pos_std, heading_std, age, ratio)
+        return QualityReport(state, reason, pos_std, heading_std, age, ratio, hpl, vpl, over)

@@ -1,4 +1,4 @@
-"""Cramer-Rao lower bound of the pose from the points of the visible planes (DESIGN.md section 6).
+"""Cramer-Rao lower bound of the pose from the points of the visible planes (docs/architecture.md, 'Depth noise and the accuracy bound').
 
 Fisher information sum_k g_k g_k^T / sigma_r,k^2 over every pixel that sees a map plane, with
 g_k the gradient of the point-to-plane residual with respect to (x, y, phi) and sigma_r,k the
@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from robot.base.geometry import pose_to_T_ground_robot, rot_z, transform_points
+from robot.base.geometry import rot_z, transform_points
 from robot.config import RobotConfig
-from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
+from robot.localization.roi import camera_views
 from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import PlaneMap
 
@@ -23,12 +23,8 @@ def pose_fisher_information(robot: RobotConfig, plane_map: PlaneMap, pose, noise
     J90 = np.array([[0.0, -1.0], [1.0, 0.0]])
     index = PlaneIndex(plane_map)
     for cam in robot.cameras:
-        K = cam.intrinsics_from_fov()
-        grid = CameraGrid(K, cam.width, cam.height, 1)
-        T_ground_camera = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
-        views = predict_plane_views(plane_map, index.in_view(T_ground_camera, grid.frustum, max_range),
-                                    T_ground_camera, grid, max_range)
-        label = rasterize_views(views, grid)
+        views, label, grid = camera_views(plane_map, index, cam, pose, max_range)
+        K = grid.K
         for k, v in enumerate(views):
             rr, cc = np.nonzero(label == k)
             if len(rr) == 0:

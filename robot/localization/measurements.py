@@ -1,7 +1,7 @@
 """What the localizer hands to the fusion filter: one constraint per fitted map plane.
 
 For map plane (n_G, d_G) observed in the robot frame as (n_R, d_R), pi_R = T_GR^T pi_G gives
-(DESIGN.md section 4 step 4):
+(docs/architecture.md, 'Plane constraints'):
 
     d_R           = n_Gx x + n_Gy y + d_G
     atan2(n_R,xy) = atan2(n_G,xy) - phi

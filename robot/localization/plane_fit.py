@@ -1,19 +1,29 @@
-"""RANSAC plane fit with the predicted map plane as a prior (DESIGN.md section 4 step 3). Pure numpy.
+"""Plane fit with the predicted map plane as a prior: which surface in the ROI is the wall, and
+its maximum-likelihood plane (docs/localization-integrity.md, docs/architecture.md 'Plane fit').
+Pure numpy.
 
-Hypotheses whose normal or offset disagree with the prediction beyond the gates are never
-scored, which removes the paper's wrong-plane identifications. Among the hypotheses that pass,
-the map plane is taken to be the *rear-most* well-supported one: clutter can stand in front of
-a wall and occlude it, but nothing in view stands behind it.
+Identification does not depend on luck. Every planar surface of the ROI is found in turn
+(sequential RANSAC on a fixed subsample: each round draws hypotheses from the points no surface
+explains yet, from fixed tables, so the same depth gives the same surfaces). The wall is then
+chosen by physics, not by support: it is the *rear-most* surface the prior admits. Clutter
+stands in front of a wall and hides part of it; nothing of the wall's own ROI can lie behind
+it (openings are holes in the map's polygons, not part of the ROI). So:
+
+* a surface with a real share of the ROI behind it is not the wall, however large it is (a
+  panel or a door leaf a few decimetres in front of the wall);
+* when the rear-most admissible surface is too small to fit, the wall is dropped, never
+  replaced by the surface in front of it;
+* when no surface is admissible and most of the ROI's depth lies far behind (or in front of)
+  where the prior puts the wall, the fit reports that as evidence against the pose.
 
 The refit is the maximum-likelihood plane under the stereo noise model, not a least-squares
 plane through the points. A stereo camera errs in disparity, f_x b / z, by about s pixels
-(DESIGN.md section 6: sigma_z = z^2 s / (f_x b) is that error seen in depth), so inverse depth
-has the same noise c = s / (f_x b) at every pixel, and a plane's inverse depth along the pixel
-ray (x/z, y/z, 1) is linear in the ray: 1/z = q . ray with q = -n / d. The fit is a linear
-least-squares problem in q, weighted only by the depth unit's quantisation (in depth, so it
-grows as z^2 in inverse depth) and a Huber loss. Two shortcuts of a point-to-plane fit each
-bias it by more than its own standard deviation once a wall is a few metres away or seen
-obliquely (scripts/bench_buildings.py reports the resulting NEES):
+(sigma_z = z^2 s / (f_x b) seen in depth), so inverse depth has the same noise c = s / (f_x b)
+at every pixel, and a plane's inverse depth along the pixel ray (x/z, y/z, 1) is linear in the
+ray: 1/z = q . ray with q = -n / d. The fit is a linear least-squares problem in q, weighted
+only by the depth unit's quantisation (in depth, so it grows as z^2 in inverse depth) and a
+Huber loss. Two shortcuts of a point-to-plane fit each bias it by more than its own standard
+deviation once a wall is a few metres away or seen obliquely:
 
 * weights from the measured depth: a point that noise pulls towards the camera gets a larger
   weight, which pulls the plane towards the camera by about 4 sigma_z^2 / z;
@@ -21,16 +31,18 @@ obliquely (scripts/bench_buildings.py reports the resulting NEES):
   the errors-in-variables term turns an oblique plane's normal.
 
 The inlier band and the weights come from the current plane's predicted depths, never from the
-measured ones. The solve is repeated as the band follows the plane: on the RANSAC subsample,
-then on every k-th point, then on all points, whose normal equations are the fit's
-information matrix, all the pose solver needs.
+measured ones. The solve is repeated as the band follows the plane: on the identification
+subsample, then on every k-th point, then on all points, whose normal equations are the fit's
+information matrix. Scatter beyond the noise model (a bowed wall, a second surface too close
+to separate, unmodelled structure) is reported as ``excess_var``: the localizer counts it as an
+error of the plane that more pixels do not average away.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Optional, Tuple
+from dataclasses import dataclass, field
+from typing import List, Optional, Tuple
 
 import numpy as np
 
@@ -40,12 +52,20 @@ import numpy as np
 # deviation (measured on the localizer benchmark's frames).
 CONVERGED = 25.0
 STAGE_ITERATIONS = 4
+# Fixed hypothesis tables: identification must give the same answer for the same depth, so the
+# draws are the same every frame. Columns are fractions of the point pool.
+_TABLE_SIZE = 512
+_TABLE = np.random.default_rng(20240611).random((3, _TABLE_SIZE))
+# Local hypotheses: an anchor and two points this fraction of the ROI's extent to its side and
+# below it. Three points of one surface are far likelier near each other than anywhere.
+LOCAL_STEP = 0.08
+SURFACE_REFINE_STEPS = 1
 
 
 @dataclass(frozen=True)
 class FitParams:
-    iterations: int = 60
-    sample: int = 600
+    iterations: int = 60  # hypotheses per identification round (as many local ones when no surface dominates)
+    sample: int = 600  # points identification looks at (every k-th ROI point)
     sigma_k: float = 3.0  # inlier band in noise standard deviations, along the ray
     min_threshold: float = 0.004  # m: inlier band floor (depth quantisation, calibration)
     min_inliers: int = 300
@@ -55,8 +75,12 @@ class FitParams:
     # only, so its tilt from it is known whatever the coarse pose (None: no such gate).
     up: Optional[Tuple[float, float, float]] = None
     tilt_gate: float = math.radians(8.0)
-    offset_gate: float = 0.05  # m
-    rear_support: float = 0.3  # a rear plane needs this fraction of the best plane's support
+    # The fitted plane's final tilt must be within 1 deg plus 3 sigma of what the mount, the wall's
+    # plumb (``tilt_sigma``) and the matcher's systematic error over the patch's height
+    # (``systematic_px``) allow: a board leaning on the wall a few degrees is not the wall.
+    tilt_sigma: float = math.radians(0.4)
+    systematic_px: float = 0.02
+    offset_gate: float = 0.05  # m, half-width of the offsets the prior admits
     noise_fx_b: float = 446.8 * 0.05  # f_x * baseline (pixel m) of the stereo noise model, full-resolution f_x
     noise_subpixel: float = 0.08
     depth_unit: float = 0.0  # m: the frame's depth unit; its rounding adds step^2 / 12 per point and a pattern (below)
@@ -66,6 +90,19 @@ class FitParams:
     # a strip of some other surface that a few percent of the points happen to lie near; clutter
     # in front of a wall rarely hides three quarters of what the ROI expected of it.
     min_inlier_fraction: float = 0.25
+    max_surfaces: int = 4  # identification rounds: surfaces found in one ROI at most
+    surface_min_fraction: float = 0.1  # of the subsample: smaller surfaces are not looked for
+    # Depth behind a surface by more than this (or 3 sigma_z) counts as behind it, and this share
+    # of the ROI behind a surface says it is not the wall. Flying pixels lie between a surface
+    # and what is behind it, so they never put depth behind the rear-most surface.
+    behind_margin: float = 0.03  # m
+    rear_fraction: float = 0.05  # of the identification subsample, among surfaces
+    # ... and of a twice denser sample, for the surface finally chosen: a sliver of wall beside
+    # a panel, between the image border and the panel's stereo shadow, is a percent or two of a ROI.
+    rear_fraction_dense: float = 0.015
+    # This share of the ROI far outside the prior's window, and no admissible surface: evidence
+    # that the wall is not where the pose says.
+    evidence_fraction: float = 0.5
 
 
 @dataclass
@@ -82,6 +119,52 @@ class PlaneFit:
     rms: float = 0.0  # weighted rms of the depth residuals, in noise standard deviations
     angle_to_prediction: float = 0.0
     offset_to_prediction: float = 0.0
+    # Where the ROI's depth says the wall is not: "behind" (most of it lies farther than the prior
+    # admits), "in_front" (nearer: occluded, or the pose is off), "" (no such evidence).
+    evidence: str = ""
+    surfaces: int = 0  # planar surfaces identification found in the ROI
+    excess_var: float = 0.0  # m^2 along the normal: scatter the noise model does not explain
+    centroid: Optional[np.ndarray] = None  # (3,) mean inlier point, camera frame
+    z2_mean: float = 0.0  # m^2: mean squared depth of the inliers (systematic disparity error grows as z^2)
+    lateral_std: float = 0.0  # m: spread of the inliers along the plane's horizontal direction
+    vertical_std: float = 0.0  # m: ... and along its steepest direction
+
+
+@dataclass
+class _Subsample:
+    """Every k-th ROI point: what identification looks at. Arrays (3, m) and (m,)."""
+
+    pick: slice
+    rx: np.ndarray
+    ry: np.ndarray
+    z: np.ndarray
+    y: np.ndarray  # 1 / z
+    rays: np.ndarray  # (3, m): x/z, y/z, 1
+    P: np.ndarray  # (3, m) points
+    thr: np.ndarray  # inlier band in depth
+    sigma: np.ndarray  # depth noise std
+    rays32: np.ndarray  # rays, z and thr in float32, for scoring
+    z32: np.ndarray
+    thr32: np.ndarray
+
+
+@dataclass
+class _Surface:
+    n: np.ndarray  # unit normal towards the camera
+    d: float
+    mask: np.ndarray  # its inliers among the subsample
+    refined: bool = True  # False: the best hypothesis as drawn (it held nearly all points)
+    admissible: bool = False
+    behind: float = 1.0  # share of the subsample behind it
+    tags: List[str] = field(default_factory=list)
+
+
+@dataclass
+class _Identification:
+    surface: Optional[_Surface]
+    reason: str
+    evidence: str = ""
+    surfaces: int = 0
 
 
 def depth_sigma(z: np.ndarray, params: FitParams) -> np.ndarray:
@@ -89,6 +172,18 @@ def depth_sigma(z: np.ndarray, params: FitParams) -> np.ndarray:
     if params.depth_unit > 0:
         return np.sqrt(s * s + params.depth_unit**2 / 12.0)
     return s
+
+
+def cross(a, b) -> np.ndarray:
+    """a x b for 3-vectors (written out: np.cross costs more than the math)."""
+    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
+    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
+def unit(v) -> np.ndarray:
+    v = np.asarray(v, float)
+    return v / max(math.sqrt(float(v @ v)), 1e-12)
 
 
 def _tangent_basis(n: np.ndarray) -> np.ndarray:
@@ -103,67 +198,424 @@ def _tangent_basis(n: np.ndarray) -> np.ndarray:
     return np.array([[a, b, c], [y * c - z * b, z * a - x * c, x * b - y * a]])
 
 
-def _ransac(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray, params: FitParams,
-            rng: np.random.Generator) -> Tuple[Optional[np.ndarray], Optional[float], slice]:
-    """The rear-most well-supported hypothesis within the gates: (n, d, the subsample), n None if none.
-
-    Arrays are laid out (3, m) and (hypotheses, m) so that every operation runs along contiguous
-    rows: numpy is several times slower on short second axes."""
+def _subsample(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, params: FitParams) -> _Subsample:
     N = len(z)
-    n_pred, d_pred = pi_pred[:3], float(pi_pred[3])
-    # Every k-th ROI point from a random start: spread over the ROI like a random draw, at no cost.
     k = max(1, -(-N // params.sample))
-    pick = slice(int(rng.integers(k)), None, k)
-    z_s = z[pick]
-    m = len(z_s)
-    rays = np.empty((3, m))
-    rays[0] = rx[pick]
-    rays[1] = ry[pick]
-    rays[2] = 1.0
-    P = rays * z_s
-    thr_sub = np.maximum(params.sigma_k * depth_sigma(z_s, params), params.min_threshold)
+    pick = slice(k // 2, None, k)  # every k-th point, the same for the same ROI
+    sx, sy, sz = rx[pick], ry[pick], z[pick]
+    rays = np.empty((3, len(sz)))
+    rays[0], rays[1], rays[2] = sx, sy, 1.0
+    sigma = depth_sigma(sz, params)
+    thr = np.maximum(params.sigma_k * sigma, params.min_threshold)
+    return _Subsample(pick, sx, sy, sz, 1.0 / sz, rays, rays * sz, thr, sigma, rays.astype(np.float32),
+                      sz.astype(np.float32), thr.astype(np.float32))
 
-    # All hypotheses at once: three sample points each.
-    idx = rng.integers(0, m, size=(3, params.iterations))
+
+def _planes_through(P: np.ndarray, idx: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Planes (H, 3) normals towards the camera and (H,) offsets through the point triplets ``idx``
+    (3, H) of ``P`` (3, m); degenerate triplets are left out."""
     a = P[:, idx[0]]
     u = P[:, idx[1]] - a
     v = P[:, idx[2]] - a
     nh = np.array([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])  # (3, H)
     norm = np.sqrt(nh[0] * nh[0] + nh[1] * nh[1] + nh[2] * nh[2])
     good = norm > 1e-9
-    nh /= np.where(good, norm, 1.0)
-    dh = -(nh[0] * a[0] + nh[1] * a[1] + nh[2] * a[2])
+    nh = nh[:, good] / norm[good]
+    dh = -(nh[0] * a[0, good] + nh[1] * a[1, good] + nh[2] * a[2, good])
     sign = np.where(dh < 0, -1.0, 1.0)  # normal towards the camera: d > 0
-    nh *= sign
-    dh *= sign
-    good &= n_pred @ nh >= math.cos(params.angle_gate)
-    if params.up is not None:
-        up = np.asarray(params.up)
-        good &= np.abs(np.arcsin(np.clip(up @ nh, -1.0, 1.0)) - math.asin(float(np.clip(up @ n_pred, -1.0, 1.0)))) \
-            <= params.tilt_gate
-    good &= np.abs(dh - d_pred) <= params.offset_gate
-    if not good.any():
-        return None, None, pick
-    nh, dh = nh[:, good].T, dh[good]  # (H, 3), (H,)
-    # Inlier when the depth along the ray is within the band: |n.p + d| < thr |n.ray|, where
-    # n.p = z n.ray and n.ray < 0 for a plane in front of the camera (a ray that misses it has
-    # n.ray >= 0 and no inlier). Scored in float32 (half the memory traffic): its rounding,
-    # 1e-7 of a few metres, is far inside any band.
-    nr = nh.astype(np.float32) @ rays.astype(np.float32)  # (H, m)
-    err = nr * z_s.astype(np.float32)
+    return (nh * sign).T, dh * sign
+
+
+def _global_hypotheses(sub: _Subsample, pool: np.ndarray, count: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Planes through triplets drawn anywhere in the pool (from the fixed table)."""
+    return _planes_through(sub.P, pool[(_TABLE[:, :count] * len(pool)).astype(np.intp)])
+
+
+def _local_hypotheses(sub: _Subsample, pool: np.ndarray, count: int) -> Tuple[np.ndarray, np.ndarray]:
+    """Planes through an anchor and its neighbours a step to the side and below (ray coordinates),
+    the neighbours looked up among up to 128 pool points: when no surface holds most of the pool,
+    three points of one surface are far likelier near each other than anywhere."""
+    m = len(pool)
+    anchors = pool[(_TABLE[0, -count:] * m).astype(np.intp)]
+    near = pool[(_TABLE[1, :128] * m).astype(np.intp)] if m > 128 else pool
+    px, py = sub.rx[near], sub.ry[near]
+    step_x = LOCAL_STEP * max(float(px.max() - px.min()), 1e-6)
+    step_y = LOCAL_STEP * max(float(py.max() - py.min()), 1e-6)
+    ax, ay = sub.rx[anchors], sub.ry[anchors]
+    dx = np.abs(px[None, :] - ax[:, None]) / step_x
+    dy = np.abs(py[None, :] - ay[:, None]) / step_y
+    right = near[np.argmin(np.abs(px[None, :] - (ax + step_x)[:, None]) / step_x + dy, axis=1)]
+    below = near[np.argmin(dx + np.abs(py[None, :] - (ay + step_y)[:, None]) / step_y, axis=1)]
+    return _planes_through(sub.P, np.vstack([anchors, right, below]))
+
+
+def _score(sub: _Subsample, nh: np.ndarray, dh: np.ndarray, cols: Optional[np.ndarray]) -> np.ndarray:
+    """Inliers of each hypothesis among the subsample points ``cols`` (None: all): the depth along
+    the ray is within the band, |n.p + d| < thr |n.ray| (n.ray < 0 for a plane in front of the
+    camera; a ray that misses it has n.ray >= 0 and no inlier). float32: its rounding, 1e-7 of a
+    few metres, is far inside any band."""
+    if cols is None:
+        rays, z, thr = sub.rays32, sub.z32, sub.thr32
+    else:
+        rays, z, thr = sub.rays32[:, cols], sub.z32[cols], sub.thr32[cols]
+    nr = nh.astype(np.float32) @ rays  # (H, m)
+    err = nr * z
     err += dh.astype(np.float32)[:, None]
     np.abs(err, out=err)
-    nr *= -thr_sub.astype(np.float32)
-    score = np.count_nonzero(err < nr, axis=1)
-    best = int(score.argmax())
-    # Rear-most rule: a parallel, farther plane with real support is the wall; the best one is clutter.
-    parallel = (nh @ nh[best]) >= math.cos(math.radians(3.0))
-    farther = dh > dh[best] + 2 * params.min_threshold + 2 * float(np.partition(thr_sub, m // 2)[m // 2])
-    rear = parallel & farther & (score >= params.rear_support * score[best])
-    if rear.any():
-        cand = np.flatnonzero(rear)
-        best = int(cand[np.argmax(dh[cand])])
-    return nh[best].copy(), float(dh[best]), pick
+    nr *= -thr
+    return np.count_nonzero(err < nr, axis=1)
+
+
+def _band(sub: _Subsample, q: np.ndarray, params: FitParams) -> np.ndarray:
+    """Subsample points within the inlier band of the plane q (as _solve_step draws it)."""
+    yp = sub.rx * q[0] + sub.ry * q[1] + q[2]
+    c = params.noise_subpixel / params.noise_fx_b
+    var = c * c + (yp * yp) ** 2 * (params.depth_unit**2 / 12.0 if params.depth_unit > 0 else 0.0)
+    band = (yp * yp * params.min_threshold) ** 2
+    r = sub.y - yp
+    return (r * r < np.maximum(var * params.sigma_k**2, band)) & (yp > 0)
+
+
+def _refine_surface(sub: _Subsample, n: np.ndarray, d: float, pool: Optional[np.ndarray],
+                    params: FitParams) -> Optional[Tuple[np.ndarray, float, np.ndarray]]:
+    """The hypothesis refined on the pool's points within its band (least squares in inverse
+    depth, where the stereo noise is the same everywhere: a solve lands on the optimum for its
+    band), with its inliers among the whole subsample; None if it degenerates."""
+    q = -n / d
+    rays, y = (sub.rays, sub.y) if pool is None else (sub.rays[:, pool], sub.y[pool])
+    c2 = (params.sigma_k * params.noise_subpixel / params.noise_fx_b) ** 2
+    for _ in range(SURFACE_REFINE_STEPS):
+        yp = q @ rays
+        r = y - yp
+        band = yp * yp * params.min_threshold
+        m = (r * r < np.maximum(c2, band * band)) & (yp > 0)
+        if int(np.count_nonzero(m)) < 3:
+            return None
+        A = rays[:, m]
+        try:
+            q = np.linalg.solve(A @ A.T, A @ y[m])
+        except np.linalg.LinAlgError:
+            return None
+    qn = math.sqrt(float(q @ q))
+    if not math.isfinite(qn) or qn <= 0:
+        return None
+    return -q / qn, 1.0 / qn, _band(sub, q, params)
+
+
+def _find_surfaces(sub: _Subsample, params: FitParams) -> List[_Surface]:
+    """Every planar surface of the subsample, largest first: each round takes the best-supported
+    plane through the points no earlier surface explains, refines it and sets its inliers aside.
+    A surface under ``surface_min_fraction`` of the subsample is not looked for: it could not be
+    used as the wall, and what lies behind the wall is counted point by point anyway."""
+    m = len(sub.z)
+    remaining = np.ones(m, bool)
+    min_pts = max(3, int(math.ceil(params.surface_min_fraction * m)))
+    out: List[_Surface] = []
+    for _ in range(params.max_surfaces):
+        pool = np.flatnonzero(remaining)
+        if len(pool) < min_pts:
+            break
+        cols = None if len(pool) == m else pool
+        nh, dh = _global_hypotheses(sub, pool, params.iterations)
+        score = _score(sub, nh, dh, cols) if len(dh) else np.zeros(0, np.intp)
+        if len(dh) == 0 or 2 * int(score.max()) < len(pool):
+            # No surface holds most of what is left: add local hypotheses.
+            nl, dl = _local_hypotheses(sub, pool, params.iterations)
+            nh, dh = np.vstack([nh, nl]), np.concatenate([dh, dl])
+            score = np.concatenate([score, _score(sub, nl, dl, cols)]) if len(dl) else score
+        if len(dh) == 0:
+            break
+        best = int(score.argmax())
+        if score[best] < min_pts:
+            break
+        if not out and score[best] >= m - min_pts:
+            # One surface holds nearly everything: the final fit refines it; identification needs
+            # it refined only if its admissibility is in doubt (see identify).
+            q = -nh[best] / dh[best]
+            out.append(_Surface(nh[best].copy(), float(dh[best]), _band(sub, q, params), refined=False))
+            break
+        refined = _refine_surface(sub, nh[best], float(dh[best]), cols, params)
+        if refined is None:
+            break
+        n, d, mask = refined
+        if int(np.count_nonzero(mask & remaining)) < min_pts:
+            break  # the refinement slid onto points already explained: nothing new here
+        out.append(_Surface(n, d, mask))
+        remaining &= ~mask
+    return out
+
+
+def _tilt(up: Optional[np.ndarray], n: np.ndarray, n_pred: np.ndarray) -> float:
+    if up is None:
+        return 0.0
+    return abs(math.asin(float(np.clip(up @ n, -1.0, 1.0))) - math.asin(float(np.clip(up @ n_pred, -1.0, 1.0))))
+
+
+def _behind(sub: _Subsample, n: np.ndarray, d: float, params: FitParams) -> float:
+    """Share of the subsample lying behind the plane (n, d) by more than the margin."""
+    return _behind_points(sub.rx, sub.ry, sub.z, n, d, params)
+
+
+def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, params: FitParams) -> float:
+    nr = n[0] * rx + n[1] * ry + n[2]
+    hit = nr < -1e-9  # rays that meet the plane in front of the camera
+    z_plane = np.where(hit, -d / np.where(hit, nr, -1.0), 1e3)
+    margin = np.maximum(3.0 * depth_sigma(z_plane, params), params.behind_margin)
+    return float(np.count_nonzero(hit & (z > z_plane + margin))) / max(len(z), 1)
+
+
+def _window_evidence(sub: _Subsample, pi_pred: np.ndarray, params: FitParams) -> Tuple[str, str]:
+    """Where the ROI's depth lies relative to the offsets the prior admits for the wall: a point's
+    offset from the predicted plane against the gate, widened by what the normal gates let the
+    plane turn at the point's distance from the camera's foot on it."""
+    n, d = pi_pred[:3], float(pi_pred[3])
+    o = -(n @ sub.P + d)  # > 0: behind the predicted plane
+    if params.up is not None:
+        h = unit(cross(params.up, n))
+        v = cross(n, h)
+        width = (np.abs(h @ sub.P) * math.tan(min(params.angle_gate, math.radians(80.0)))
+                 + np.abs(v @ sub.P) * math.tan(min(params.tilt_gate, math.radians(80.0))))
+    else:
+        lateral = np.linalg.norm(sub.P - np.outer(n, n @ sub.P), axis=0)
+        width = lateral * math.tan(min(params.angle_gate, math.radians(80.0)))
+    W = params.offset_gate + width + np.maximum(3.0 * sub.sigma, params.behind_margin)
+    m = max(len(o), 1)
+    behind, front = np.count_nonzero(o > W) / m, np.count_nonzero(o < -W) / m
+    if behind >= params.evidence_fraction:
+        return "behind", (f"no surface the prior admits: {100 * behind:.0f} % of the ROI's depth lies behind where "
+                          "the pose admits the wall (evidence against the pose)")
+    if front >= params.evidence_fraction:
+        return "in_front", (f"no surface the prior admits: {100 * front:.0f} % of the ROI's depth lies in front of "
+                            "where the pose admits the wall (occluded, or evidence against the pose)")
+    return "", "no surface within the prior's gates"
+
+
+def _same_surface(a: _Surface, b: _Surface, sub: _Subsample) -> bool:
+    """Two fits of one surface: parallel within 2 deg and within the inlier band of each other."""
+    if float(a.n @ b.n) < math.cos(math.radians(2.0)):
+        return False
+    return abs(a.d - b.d) < 2.0 * float(np.median(sub.thr))
+
+
+def _admissible(s: _Surface, pi_pred: np.ndarray, up: Optional[np.ndarray], params: FitParams) -> bool:
+    ang = math.acos(float(np.clip(s.n @ pi_pred[:3], -1.0, 1.0)))
+    return (ang <= params.angle_gate and _tilt(up, s.n, pi_pred[:3]) <= params.tilt_gate
+            and abs(s.d - float(pi_pred[3])) <= params.offset_gate)
+
+
+def identify(sub: _Subsample, pi_pred: np.ndarray, params: FitParams) -> _Identification:
+    """Which surface of the ROI is the predicted wall: the rear-most one the prior admits."""
+    n_pred, d_pred = pi_pred[:3], float(pi_pred[3])
+    up = None if params.up is None else np.asarray(params.up, float)
+    surfaces = _find_surfaces(sub, params)
+    if len(surfaces) == 1 and not surfaces[0].refined and not _admissible(surfaces[0], pi_pred, up, params):
+        refined = _refine_surface(sub, surfaces[0].n, surfaces[0].d, None, params)  # noise at a gate's edge?
+        surfaces = [] if refined is None else [_Surface(*refined)]
+    for s in surfaces:
+        s.admissible = _admissible(s, pi_pred, up, params)
+    adm = [s for s in surfaces if s.admissible]
+    if len(adm) == 1 and len(surfaces) == 1:
+        return _Identification(adm[0], "ok", "", 1)  # nothing else in the ROI: the dense check decides
+    for s in adm:
+        s.behind = _behind(sub, s.n, s.d, params)
+    if not adm:
+        # A large surface facing the way the wall does, only at an offset the prior does not admit:
+        # the wall is there, not where the pose says.
+        m = max(len(sub.z), 1)
+        parallel = [s for s in surfaces if math.acos(float(np.clip(s.n @ n_pred, -1.0, 1.0))) <= params.angle_gate
+                    and _tilt(up, s.n, n_pred) <= params.tilt_gate and s.mask.sum() >= params.min_inlier_fraction * m]
+        if parallel:
+            s = max(parallel, key=lambda t: int(t.mask.sum()))
+            where = "behind" if s.d > d_pred else "in_front"
+            return _Identification(None, f"a surface parallel to the wall holds {100 * s.mask.sum() / m:.0f} % of the ROI "
+                                   f"{1000 * abs(s.d - d_pred):.0f} mm {'behind' if where == 'behind' else 'in front of'} "
+                                   f"where the pose puts the wall, beyond the {1000 * params.offset_gate:.0f} mm the "
+                                   "prior admits (evidence against the pose)", where, len(surfaces))
+        evidence, why = _window_evidence(sub, pi_pred, params)
+        return _Identification(None, why, evidence, len(surfaces))
+    clear = [s for s in adm if s.behind < params.rear_fraction]
+    if not clear:
+        s = min(adm, key=lambda t: t.behind)
+        evidence, _ = _window_evidence(sub, pi_pred, params)
+        return _Identification(None, f"{100 * s.behind:.0f} % of the ROI lies behind the farthest surface the prior "
+                               f"admits ({1000 * (s.d - d_pred):+.0f} mm from the prediction): that surface is "
+                               "clutter in front of the wall, and the wall is not where the prior admits it",
+                               "behind" if evidence == "behind" else "", len(surfaces))
+    best = max(clear, key=lambda t: int(t.mask.sum()))
+    rivals = [s for s in clear if s is not best and not _same_surface(s, best, sub)]
+    if rivals:
+        r = rivals[0]
+        return _Identification(None, f"ambiguous: two surfaces with nothing behind them could be the wall "
+                               f"({1000 * (best.d - d_pred):+.0f} and {1000 * (r.d - d_pred):+.0f} mm from the "
+                               "prediction)", "", len(surfaces))
+    return _Identification(best, "ok", "", len(surfaces))
+
+
+def _rear_most_dense(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, params: FitParams,
+                     d_pred: float) -> Optional[str]:
+    """Why the chosen surface is not the rear-most thing of the ROI on a denser sample (None: it is)."""
+    k = max(1, -(-len(z) // (2 * params.sample)))
+    b = _behind_points(rx[::k], ry[::k], z[::k], n, d, params)
+    if b < params.rear_fraction_dense:
+        return None
+    return (f"{100 * b:.1f} % of the ROI lies behind the rear-most surface the prior admits "
+            f"({1000 * (d - d_pred):+.0f} mm from the prediction): it is clutter in front of the wall, and too little "
+            "of the wall itself is visible to fit")
+
+
+def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray, params: FitParams,
+              start: Optional[Tuple[np.ndarray, float]] = None) -> PlaneFit:
+    """Identify and fit the map plane predicted as ``pi_pred`` (n towards the camera) in the ROI
+    pixels given by their rays (x/z and y/z, (N,) each) and measured depths z (m, (N,), all > 0).
+
+    ``start``: this surface's fit (n, d) from the same frame on an overlapping ROI (the
+    localizer's previous pass). It is kept only if it is still the rear-most surface the prior
+    admits on the new ROI; otherwise the wall is identified again."""
+    N = len(z)
+    if N < max(params.min_inliers, 3):
+        return PlaneFit(False, f"too few ROI points ({N} < {params.min_inliers})")
+    stages = []
+    n_pred, d_pred = pi_pred[:3], float(pi_pred[3])
+    up = None if params.up is None else np.asarray(params.up, float)
+    if start is not None:
+        n, d = np.asarray(start[0], float), float(start[1])
+        if not (math.acos(float(np.clip(n @ n_pred, -1.0, 1.0))) <= params.angle_gate
+                and _tilt(up, n, n_pred) <= params.tilt_gate and abs(d - d_pred) <= params.offset_gate):
+            start = None
+    surfaces = 0
+    if start is None:
+        ident = identify(_subsample(rx, ry, z, params), pi_pred, params)
+        surfaces = ident.surfaces
+        if ident.surface is None:
+            return PlaneFit(False, ident.reason, evidence=ident.evidence, surfaces=surfaces)
+        n, d = ident.surface.n, ident.surface.d
+    if start is None:
+        # Solve on every k-th point, then on all points: each stage starts within a few of its
+        # own standard deviations, so its band is nearly final and one or two solves suffice;
+        # the full set's last solve gives the information.
+        k = N // (4 * params.sample)
+        if k >= 2:
+            stages.append((rx[::k], ry[::k], 1.0 / z[::k]))
+    y = 1.0 / z
+    stages.append((rx, ry, y))
+    q = -n / d
+    for i, (sx, sy, sinv) in enumerate(stages):
+        last = i == len(stages) - 1
+        for _ in range(STAGE_ITERATIONS):
+            step, H, mask, chi2, shift = _solve_step(sx, sy, sinv, q, params, last and params.depth_unit > 0)
+            q = q + step
+            if step @ H @ step < CONVERGED:
+                break
+    count = int(mask.sum())
+    qn = math.sqrt(float(q @ q))
+    n, d = -q / qn, 1.0 / qn
+    # Nothing of a wall's ROI lies behind it: checked on more points than identification saw, with
+    # the plane fitted to all of them.
+    why = _rear_most_dense(rx, ry, z, n, d, params, d_pred)
+    if why is not None:
+        if start is not None:  # the last pass's surface is not the rear-most one here: identify afresh
+            return fit_plane(rx, ry, z, pi_pred, params)
+        return PlaneFit(False, why, n, d, count, surfaces=surfaces)
+    ang = math.acos(float(np.clip(n @ n_pred, -1.0, 1.0)))
+    off = d - d_pred
+    if count < params.min_inliers:
+        return PlaneFit(False, f"too few inliers ({count} < {params.min_inliers}): the wall's visible part is too small",
+                        n, d, count, angle_to_prediction=ang, offset_to_prediction=off, surfaces=surfaces)
+    if count < params.min_inlier_fraction * N:
+        return PlaneFit(False, f"the rear-most plane within the gates explains only {100.0 * count / N:.0f} % of the "
+                               "ROI's points: not enough of this wall is visible", n, d, count, angle_to_prediction=ang,
+                        offset_to_prediction=off, surfaces=surfaces)
+    tilt = _tilt(up, n, n_pred)
+    if ang > params.angle_gate or abs(off) > params.offset_gate or tilt > params.tilt_gate:
+        return PlaneFit(False, f"fit disagrees with the map: normal {math.degrees(ang):.1f} deg (tilt "
+                               f"{math.degrees(tilt):.1f} deg), offset {off * 1000:.0f} mm from prediction", n, d, count,
+                        angle_to_prediction=ang, offset_to_prediction=off, surfaces=surfaces)
+    # Information over (theta1, theta2, d), the normal turned towards e1, e2 and the offset:
+    # q = -n / d moves by dq = -(theta1 e1 + theta2 e2) / d + n dd / d^2.
+    B = _tangent_basis(n)
+    Jq = np.column_stack([-B[0] / d, -B[1] / d, n / (d * d)])
+    chi2_red = chi2 / max(count - 3, 1)
+    try:
+        Hi = np.linalg.inv(H)
+        Jqi = np.linalg.inv(Jq)
+    except np.linalg.LinAlgError:
+        return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
+    # More scatter than the noise model predicts (calibration, unmodelled noise) widens the
+    # covariance; less never narrows it below the model.
+    cov = Jqi @ Hi @ Jqi.T * max(chi2_red, 1.0)
+    if shift is not None:
+        cov += _quantisation_cov(rx, ry, shift[0], shift[1], Hi, Jqi, params)
+    info = np.linalg.inv(cov)
+    # What the inliers look like (every k-th of them): where they are, how deep, how wide.
+    sl = slice(None, None, max(1, N // (2 * params.sample)))
+    m_s = mask[sl]
+    zs = z[sl][m_s]
+    P_in = np.vstack([rx[sl][m_s] * zs, ry[sl][m_s] * zs, zs])
+    k_in = P_in.shape[1]
+    centroid = P_in.sum(axis=1) / k_in
+    z2 = float(zs @ zs) / k_in
+    if up is not None:
+        h = unit(cross(up, n))
+    else:
+        h = B[0]
+    v = cross(n, h)
+    a, b = h @ P_in, v @ P_in
+    lateral = math.sqrt(max(float(a @ a) / k_in - (float(a.sum()) / k_in) ** 2, 0.0))
+    vertical = math.sqrt(max(float(b @ b) / k_in - (float(b.sum()) / k_in) ** 2, 0.0))
+    why = _not_flat(P_in, a, n, d, z2, params)
+    if why is not None:
+        return PlaneFit(False, why, n, d, count, angle_to_prediction=ang, offset_to_prediction=off, surfaces=surfaces)
+    if up is not None:
+        sd = params.systematic_px / params.noise_fx_b * z2 * abs(float(n[2]))
+        allowed = math.radians(1.0) + 3.0 * math.hypot(params.tilt_sigma, sd / max(math.sqrt(3.0) * vertical, 0.1))
+        if tilt > allowed:
+            return PlaneFit(False, f"the surface is tilted {math.degrees(tilt):.1f} deg from the wall (at most "
+                                   f"{math.degrees(allowed):.1f} deg for a wall seen like this): a board or panel "
+                                   "leaning in front of it, not the wall", n, d, count, angle_to_prediction=ang,
+                            offset_to_prediction=off, surfaces=surfaces)
+    # Scatter the noise model does not explain does not average down: if the surface is thicker
+    # than the noise, where in that thickness the wall is stays unknown. (chi2_red of a pure noise
+    # fit is a little under 1: the band and the Huber loss trim its tails.)
+    sig_n = float(depth_sigma(np.array([math.sqrt(z2)]), params)[0]) * abs(float(n[2]))
+    excess = max(chi2_red - 1.1, 0.0) * sig_n * sig_n
+    return PlaneFit(True, "ok", n, d, count, mask, info, cov, B, math.sqrt(chi2_red), ang, off, "", surfaces, excess,
+                    centroid, z2, lateral, vertical)
+
+
+FLAT_SLOPE = math.radians(0.5)  # what a built wall's bow may turn one half of a patch against the other
+
+
+def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: float, params: FitParams) -> Optional[str]:
+    """Why the inliers are not one flat surface (None: they are). Where another surface meets the
+    wall at a small angle (a door swung back against it, a board leaning on it), the inlier band
+    takes both and the fit settles between them: the two halves of the patch along the wall then
+    slope against the plane in opposite directions, by far more than noise, the matcher's
+    systematic error and a bow explain."""
+    k = P_in.shape[1]
+    if k < 40:
+        return None
+    res = n @ P_in + d  # signed distance of each inlier from the plane
+    cut = float(np.median(along))
+    slopes, spreads, counts = [], [], []
+    for side in (along <= cut, along > cut):
+        a, r = along[side], res[side]
+        va = float(a.var())
+        if len(a) < 20 or va <= 1e-8:
+            return None
+        slopes.append(float(((a - a.mean()) * r).mean()) / va)
+        spreads.append(math.sqrt(va))
+        counts.append(len(a))
+    sigma = float(depth_sigma(np.array([math.sqrt(z2)]), params)[0]) * abs(float(n[2]))
+    sys_z = params.systematic_px / params.noise_fx_b * z2 * abs(float(n[2]))
+    # Samples are several matcher windows apart: nearly independent (allow 1.5 times their spread).
+    noise = math.hypot(*(1.5 * sigma / (math.sqrt(c) * sp) for c, sp in zip(counts, spreads)))
+    allowed = FLAT_SLOPE + 3.0 * noise + 2.0 * sys_z / max(min(spreads), 0.05)
+    turn = abs(math.atan(slopes[0]) - math.atan(slopes[1]))
+    if turn <= allowed:
+        return None
+    return (f"not one flat surface: its two halves along the wall turn {math.degrees(turn):.1f} deg against each "
+            f"other (at most {math.degrees(allowed):.1f} deg for one wall): another surface meets it at a small angle "
+            "(a door swung back, a leaning board)")
 
 
 def _solve_step(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, q: np.ndarray, params: FitParams,
@@ -214,81 +666,6 @@ def _solve_step(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, q: np.ndarray, pa
     except np.linalg.LinAlgError:
         step = np.zeros(3)
     return step, H, mask, chi2, shift
-
-
-def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray, params: FitParams,
-              rng: np.random.Generator, start: Optional[Tuple[np.ndarray, float]] = None) -> PlaneFit:
-    """Fit the map plane predicted as ``pi_pred`` (n towards the camera) to ROI pixels given by
-    their rays (x/z and y/z, (N,) each) and measured depths z (m, (N,), all > 0).
-
-    ``start``: this surface's fit (n, d) from the same frame on an overlapping ROI (the
-    localizer's previous pass): RANSAC and the coarse stages are skipped, the plane is refined on
-    the new ROI's points."""
-    N = len(z)
-    if N < max(params.min_inliers, 3):
-        return PlaneFit(False, f"too few ROI points ({N} < {params.min_inliers})")
-    y = 1.0 / z
-    stages = []
-    if start is None:
-        n, d, pick = _ransac(rx, ry, z, pi_pred, params, rng)
-        if n is None:
-            return PlaneFit(False, "no RANSAC hypothesis within the prediction gates")
-        # Solve on the RANSAC subsample, then on every k-th point, then on all points: each stage
-        # starts within a few of its own standard deviations, so its band is nearly final and one
-        # or two solves suffice; the full set's last solve gives the information.
-        if pick.step > 1:
-            stages.append((rx[pick], ry[pick], y[pick]))
-        k = N // (4 * params.sample)
-        if k >= 2:
-            stages.append((rx[::k], ry[::k], y[::k]))
-    else:
-        n, d = np.asarray(start[0], float), float(start[1])
-    stages.append((rx, ry, y))
-    q = -n / d
-    for i, (sx, sy, sinv) in enumerate(stages):
-        last = i == len(stages) - 1
-        for _ in range(STAGE_ITERATIONS):
-            step, H, mask, chi2, shift = _solve_step(sx, sy, sinv, q, params, last and params.depth_unit > 0)
-            q = q + step
-            if step @ H @ step < CONVERGED:
-                break
-    count = int(mask.sum())
-    qn = math.sqrt(float(q @ q))
-    n, d = -q / qn, 1.0 / qn
-    n_pred, d_pred = pi_pred[:3], float(pi_pred[3])
-    ang = math.acos(float(np.clip(n @ n_pred, -1.0, 1.0)))
-    off = d - d_pred
-    if count < params.min_inliers:
-        return PlaneFit(False, f"too few inliers ({count} < {params.min_inliers})", n, d, count,
-                        angle_to_prediction=ang, offset_to_prediction=off)
-    if count < params.min_inlier_fraction * N:
-        return PlaneFit(False, f"the best plane within the gates explains only {100.0 * count / N:.0f} % of the ROI's "
-                               "points: not this wall", n, d, count, angle_to_prediction=ang, offset_to_prediction=off)
-    tilt = 0.0
-    if params.up is not None:
-        up = np.asarray(params.up)
-        tilt = abs(math.asin(float(np.clip(up @ n, -1.0, 1.0))) - math.asin(float(np.clip(up @ n_pred, -1.0, 1.0))))
-    if ang > params.angle_gate or abs(off) > params.offset_gate or tilt > params.tilt_gate:
-        return PlaneFit(False, f"fit disagrees with the map: normal {math.degrees(ang):.1f} deg (tilt "
-                               f"{math.degrees(tilt):.1f} deg), offset {off * 1000:.0f} mm from prediction", n, d, count,
-                        angle_to_prediction=ang, offset_to_prediction=off)
-    # Information over (theta1, theta2, d), the normal turned towards e1, e2 and the offset:
-    # q = -n / d moves by dq = -(theta1 e1 + theta2 e2) / d + n dd / d^2.
-    B = _tangent_basis(n)
-    Jq = np.column_stack([-B[0] / d, -B[1] / d, n / (d * d)])
-    # More scatter than the noise model predicts (calibration, unmodelled noise) widens the
-    # covariance; less never narrows it below the model.
-    chi2_red = chi2 / max(count - 3, 1)
-    try:
-        Hi = np.linalg.inv(H)
-        Jqi = np.linalg.inv(Jq)
-    except np.linalg.LinAlgError:
-        return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
-    cov = Jqi @ Hi @ Jqi.T * max(chi2_red, 1.0)
-    if shift is not None:
-        cov += _quantisation_cov(rx, ry, shift[0], shift[1], Hi, Jqi, params)
-    info = np.linalg.inv(cov)
-    return PlaneFit(True, "ok", n, d, count, mask, info, cov, B, math.sqrt(chi2_red), ang, off)
 
 
 def _quantisation_cov(rx: np.ndarray, ry: np.ndarray, u: np.ndarray, yp: np.ndarray, Hi: np.ndarray,

@@ -1,7 +1,7 @@
-"""Regions of interest: which pixels each visible map plane should cover (DESIGN.md section 4 step 2).
+"""Regions of interest: which pixels each visible map plane should cover.
 
 Visible polygons are rasterized with OpenCV into a label image through a depth buffer computed
-from each plane's exact depth along the pixel rays. DESIGN.md suggests drawing far planes first; a
+from each plane's exact depth along the pixel rays. A painter's algorithm would draw far planes first; a
 depth buffer gives the same answer where that works and stays right where polygons overlap in
 depth (a long wall that is both nearer and farther than another), at the same cost. Planes are
 drawn nearest first so that one hidden behind nearer walls is recognised from its box and skipped.
@@ -16,6 +16,7 @@ it can own some (measured in scripts/bench_buildings.py).
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
@@ -23,9 +24,11 @@ from typing import Callable, Dict, List, Optional, Sequence, Tuple
 import cv2
 import numpy as np
 
-from robot.maps.plane_index import BACK_FACE_EPS, packed_polygons
+from robot.base.geometry import pose_to_T_ground_robot
+from robot.config import CameraConfig
+from robot.maps.plane_index import BACK_FACE_EPS, PackedPolygons, PlaneIndex, packed_polygons
 from robot.maps.plane_map import PlaneMap
-from robot.maps.visibility import NEAR_PLANE, frustum_planes
+from robot.maps.visibility import NEAR_PLANE, clip_vertex_list, frustum_planes
 
 _SUBPIXEL_BITS = 4
 _KERNELS: Dict[int, np.ndarray] = {}  # erosion kernels by radius
@@ -92,29 +95,16 @@ class CameraGrid:
         return r
 
 
-def _clip(pts: List[List[float]], planes: List[List[float]]) -> Optional[List[List[float]]]:
-    """Sutherland-Hodgman clip to the half-spaces n . p + d >= 0, as
-    :func:`robot.maps.visibility.clip_polygon`, on Python floats: for the few vertices of a wall
-    polygon, per-call numpy overhead costs more than the arithmetic. Only the planes given are
-    applied: those that some vertex is outside of (clipping never moves a vertex outside
-    another plane, its new vertices lie between old ones)."""
-    for a, b, c, d in planes:
-        s = [a * x + b * y + c * z + d for x, y, z in pts]
-        if max(s) < 0:
-            return None
-        out = []
-        n = len(pts)
-        for i in range(n):
-            j = i + 1 if i + 1 < n else 0
-            si, sj = s[i], s[j]
-            if si >= 0:
-                out.append(pts[i])
-            if (si >= 0) != (sj >= 0):
-                t = si / (si - sj)
-                p, q = pts[i], pts[j]
-                out.append([p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), p[2] + t * (q[2] - p[2])])
-        pts = out
-    return pts if len(pts) >= 3 else None
+def camera_views(plane_map: PlaneMap, index: PlaneIndex, cam: CameraConfig, pose: Tuple[float, float, float],
+                 max_range: float, stride: int = 1) -> Tuple[List[PlaneView], np.ndarray, CameraGrid]:
+    """What a camera sees from the robot pose (x, y, phi), nearer than ``max_range``: the views, the
+    label image on its grid (index into the views of the plane each grid pixel sees, -1 for none)
+    and the grid. No margins and no border padding: for reports and bounds, not for localizing."""
+    grid = CameraGrid(cam.intrinsics_from_fov(), cam.width, cam.height, stride)
+    T_ground_camera = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
+    candidates = index.in_view(T_ground_camera, grid.frustum, max_range)
+    views = predict_plane_views(plane_map, candidates, T_ground_camera, grid, max_range)
+    return views, rasterize_views(views, grid), grid
 
 
 def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground_camera: np.ndarray,
@@ -128,77 +118,133 @@ def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground
     elementwise), so a plane's view does not depend on which other planes are candidates.
     """
     pk = packed_polygons(plane_map)
+    # Keep the candidates the camera sees from their observable side, with their planes in C.
+    facing, pi_camera = _facing_camera(pk, candidates, T_ground_camera)
+    if not facing:
+        return []
+    # Stack their polygons' vertices, in C.
+    polys = _stack_in_camera(pk, facing, T_ground_camera)
+    # Drop the polygons outside the frustum and clip those that cross it.
+    clipped = _clip_to_frustum(polys, grid.frustum)
+    if not clipped.kept:
+        return []
+    # Project every vertex: full-resolution pixels, and the fixed-point grid pixels fillPoly takes.
+    px = _project(clipped.Q_camera, grid.K)
+    fixed = _fixed_point(px, grid.stride)
+    # Gather each plane's outlines, nearest depth and grid box; drop the planes beyond max_range.
+    found = _plane_outlines(polys.plane_of, clipped, px, fixed, grid, max_range)
+    # One view per plane left, with its plane in C.
+    row = {c: r for r, c in enumerate(facing)}
+    return [PlaneView(idx, plane_map.planes[idx].id, pi_camera[row[idx]], outlines, z_near, box=box,
+                      fixed_px=(grid.stride, fixed_outlines))
+            for idx, outlines, fixed_outlines, z_near, box in found]
+
+
+@dataclass
+class _StackedPolygons:
+    """Polygons of several planes, their vertices stacked in one array, plane after plane."""
+
+    P_camera: np.ndarray  # (N, 3) every vertex, camera frame
+    first: List[int]  # row of each polygon's first vertex
+    counts: List[int]  # vertices of each polygon
+    plane_of: List[int]  # map plane index of each polygon
+
+
+@dataclass
+class _ClippedPolygons:
+    """What the frustum leaves of stacked polygons, as segments of one vertex array."""
+
+    Q_camera: np.ndarray  # (M, 3) the stacked vertices, then those of the clipped polygons
+    starts: np.ndarray  # first row of every segment: the stacked polygons', then the clipped ones'
+    kept: List[Tuple[int, int]]  # (polygon, its segment) for each polygon with something left
+
+
+def _facing_camera(pk: PackedPolygons, candidates: Sequence[int],
+                   T_ground_camera: np.ndarray) -> Tuple[List[int], np.ndarray]:
+    """The candidates whose observable side the camera stands on (otherwise it looks at the back of
+    the face), and their planes in C, pi_C = pi_G T_GC row by row."""
     cand = np.asarray(candidates, dtype=np.intp).reshape(-1)
-    if len(cand) == 0:
-        return []
-    cam_G = T_ground_camera[:3, 3]
     pi = pk.planes[cand]
-    # The camera must stand on the observable side; otherwise it looks at the back of the face.
-    front = np.einsum("ij,j->i", pi[:, :3], cam_G) + pi[:, 3] > BACK_FACE_EPS
-    cand = cand[front]
-    pi_camera = np.einsum("ij,jk->ik", pi[front], T_ground_camera)  # pi_C = pi_G T_GC, per row
-    cand_list = cand.tolist()
-    if not cand_list:
-        return []
+    front = np.einsum("ij,j->i", pi[:, :3], T_ground_camera[:3, 3]) + pi[:, 3] > BACK_FACE_EPS
+    return cand[front].tolist(), np.einsum("ij,jk->ik", pi[front], T_ground_camera)
+
+
+def _stack_in_camera(pk: PackedPolygons, planes: List[int], T_ground_camera: np.ndarray) -> _StackedPolygons:
+    """The polygons of ``planes``, plane after plane, with their vertices moved into C."""
     R_T = T_ground_camera[:3, :3].T
-    t_C = -R_T @ cam_G
-    V = np.concatenate([pk.plane_vertices[i] for i in cand_list])
-    counts = [c for i in cand_list for c in pk.plane_counts[i]]
-    plane_of = [i for i in cand_list for _ in pk.plane_counts[i]]
-    P = np.einsum("ij,kj->ik", V, R_T) + t_C
-    first = [0]
-    for c in counts[:-1]:
-        first.append(first[-1] + c)
-    first_vertex = np.array(first, np.intp)
-    frustum = grid.frustum
+    t_C = -R_T @ T_ground_camera[:3, 3]
+    V = np.concatenate([pk.plane_vertices[i] for i in planes])
+    counts = [c for i in planes for c in pk.plane_counts[i]]
+    plane_of = [i for i in planes for _ in pk.plane_counts[i]]
+    first = [0, *itertools.accumulate(counts[:-1])]
+    return _StackedPolygons(np.einsum("ij,kj->ik", V, R_T) + t_C, first, counts, plane_of)
+
+
+def _clip_to_frustum(polys: _StackedPolygons, frustum: np.ndarray) -> _ClippedPolygons:
+    """Drop the polygons with every vertex outside one frustum plane; clip those that cross some
+    plane, against just those planes (Python floats, one by one); keep the others as they are."""
+    P = polys.P_camera
+    first_vertex = np.array(polys.first, np.intp)
     outside = np.einsum("ij,kj->ik", P, frustum[:, :3]) < -frustum[:, 3]
     # A polygon with every vertex outside one frustum plane is gone; for the others, bit j set
-    # means some vertex is outside plane j, so it is clipped against those planes only.
+    # means some vertex is outside plane j.
     gone = np.logical_and.reduceat(outside, first_vertex, axis=0).any(axis=1).tolist()
     cross = np.bitwise_or.reduceat(outside @ (1 << np.arange(len(frustum))), first_vertex).tolist()
-    # Clip the polygons that cross the frustum (Python floats), then project everything together.
     P_list = P.tolist()
     frustum_list = frustum.tolist()
-    # kept: (polygon, its segment in the stacked vertex array: P's polygons, then the clipped ones)
-    kept, clipped_pts, clipped_starts = [], [], []
-    n_polys = len(counts)
-    for k, (a, n, bits) in enumerate(zip(first, counts, cross)):
+    kept: List[Tuple[int, int]] = []
+    clipped_pts: List[List[float]] = []
+    clipped_starts: List[int] = []
+    n_polys = len(polys.counts)
+    for k, (a, n, bits) in enumerate(zip(polys.first, polys.counts, cross)):
         if gone[k]:
             continue
         if not bits:
             kept.append((k, k))
             continue
-        clipped = _clip(P_list[a:a + n], [f for j, f in enumerate(frustum_list) if bits >> j & 1])
+        clipped = clip_vertex_list(P_list[a:a + n], [f for j, f in enumerate(frustum_list) if bits >> j & 1])
         if clipped is not None:
             kept.append((k, n_polys + len(clipped_starts)))
             clipped_starts.append(len(P) + len(clipped_pts))
             clipped_pts += clipped
-    if not kept:
-        return []
+    # Rows of polygons that cross the frustum stay in Q unused; their clipped copies follow.
     Q = np.vstack([P, clipped_pts]) if clipped_pts else P
-    seg = np.concatenate([first_vertex, np.array(clipped_starts, np.intp)])
-    seg_end = np.append(seg[1:], len(Q)).tolist()
-    K = grid.K
-    # Rows of polygons that cross the frustum are not used; their clipped copies are.
-    px = Q[:, :2] / np.maximum(Q[:, 2:], NEAR_PLANE)
+    return _ClippedPolygons(Q, np.concatenate([first_vertex, np.array(clipped_starts, np.intp)]), kept)
+
+
+def _project(P_camera: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Full-resolution pixels (col, row) of camera-frame points; depth floored at the near plane."""
+    px = P_camera[:, :2] / np.maximum(P_camera[:, 2:], NEAR_PLANE)
     px *= (K[0, 0], K[1, 1])
     px += K[:2, 2]
-    fixed = np.rint(px * (float(1 << _SUBPIXEL_BITS) / grid.stride)).astype(np.int32)
-    z_min = np.minimum.reduceat(Q[:, 2], seg).tolist()
-    px_lo = np.minimum.reduceat(px, seg).tolist()
-    px_hi = np.maximum.reduceat(px, seg).tolist()
-    seg = seg.tolist()
-    scale = 1.0 / grid.stride
-    gh, gw = grid.shape
+    return px
+
+
+def _fixed_point(px: np.ndarray, stride: int) -> np.ndarray:
+    """Full-resolution pixels to the fixed-point grid pixels fillPoly takes (shift _SUBPIXEL_BITS)."""
+    return np.rint(px * (float(1 << _SUBPIXEL_BITS) / stride)).astype(np.int32)
+
+
+def _plane_outlines(plane_of: List[int], clipped: _ClippedPolygons, px: np.ndarray, fixed: np.ndarray,
+                    grid: CameraGrid, max_range: float
+                    ) -> List[Tuple[int, List[np.ndarray], List[np.ndarray], float, Tuple[int, int, int, int]]]:
+    """(plane, outlines in pixels, the same in fixed point, nearest depth, grid box) of each plane
+    whose nearest visible point is within ``max_range``. Kept polygons come grouped by plane."""
+    starts = clipped.starts
+    z_min = np.minimum.reduceat(clipped.Q_camera[:, 2], starts).tolist()
+    px_lo = np.minimum.reduceat(px, starts).tolist()
+    px_hi = np.maximum.reduceat(px, starts).tolist()
+    seg_end = np.append(starts[1:], len(clipped.Q_camera)).tolist()
+    seg = starts.tolist()
     found = []
-    i, n_kept = 0, len(kept)
+    i, n_kept = 0, len(clipped.kept)
     while i < n_kept:
-        idx = plane_of[kept[i][0]]
+        idx = plane_of[clipped.kept[i][0]]
         outlines, fixed_outlines, z_near = [], [], math.inf
         u0 = v0 = math.inf
         u1 = v1 = -math.inf
-        while i < n_kept and plane_of[kept[i][0]] == idx:
-            j = kept[i][1]
+        while i < n_kept and plane_of[clipped.kept[i][0]] == idx:
+            j = clipped.kept[i][1]
             a, b = seg[j], seg_end[j]
             outlines.append(px[a:b])
             fixed_outlines.append(fixed[a:b])
@@ -207,20 +253,23 @@ def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground
             u0, v0, u1, v1 = min(u0, lo_u), min(v0, lo_v), max(u1, hi_u), max(v1, hi_v)
             i += 1
         if z_near < max_range:
-            box = (max(math.floor(u0 * scale), 0), max(math.floor(v0 * scale), 0),
-                   min(math.ceil(u1 * scale), gw - 1), min(math.ceil(v1 * scale), gh - 1))
-            found.append((idx, outlines, z_near, box, fixed_outlines))
-    row = {c: r for r, c in enumerate(cand_list)}
-    return [PlaneView(idx, plane_map.planes[idx].id, pi_camera[row[idx]], outlines, z_near, box=box,
-                      fixed_px=(grid.stride, fixed_outlines))
-            for idx, outlines, z_near, box, fixed_outlines in found]
+            found.append((idx, outlines, fixed_outlines, z_near, _grid_box(u0, v0, u1, v1, grid)))
+    return found
 
 
-def _grid_box(view: PlaneView, grid: CameraGrid) -> Tuple[int, int, int, int]:
+def _grid_box(u0: float, v0: float, u1: float, v1: float, grid: CameraGrid) -> Tuple[int, int, int, int]:
+    """Grid pixels (c0, r0, c1, r1), inclusive and on the grid, around full-resolution pixels from
+    (u0, v0) to (u1, v1)."""
     h, w = grid.shape
-    pts = np.vstack(view.outlines_px) / grid.stride
-    (x0, y0), (x1, y1) = pts.min(axis=0).tolist(), pts.max(axis=0).tolist()
-    return max(math.floor(x0), 0), max(math.floor(y0), 0), min(math.ceil(x1), w - 1), min(math.ceil(y1), h - 1)
+    s = grid.stride
+    return (max(math.floor(u0 / s), 0), max(math.floor(v0 / s), 0),
+            min(math.ceil(u1 / s), w - 1), min(math.ceil(v1 / s), h - 1))
+
+
+def _outline_box(outlines_px: List[np.ndarray], grid: CameraGrid) -> Tuple[int, int, int, int]:
+    pts = np.vstack(outlines_px)
+    (u0, v0), (u1, v1) = pts.min(axis=0).tolist(), pts.max(axis=0).tolist()
+    return _grid_box(u0, v0, u1, v1, grid)
 
 
 def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
@@ -238,12 +287,11 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
     label = np.full((h, w), -1, dtype=np.int32)
     cols, rows, x_img, y_img = grid.rays
     one = 1 << _SUBPIXEL_BITS
-    sub = float(one) / grid.stride  # full-resolution pixels to fixed-point grid pixels
     drawn = False  # nothing drawn yet: nothing can hide the first plane
     for k in sorted(range(len(views)), key=lambda j: views[j].z_near):
         view = views[k]
         if view.box is None:
-            view.box = _grid_box(view, grid)
+            view.box = _outline_box(view.outlines_px, grid)
         c0, r0, c1, r1 = view.box
         n = view.pi_camera
         if c1 < c0 or r1 < r0 or n[3] == 0:
@@ -262,7 +310,7 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
         if view.fixed_px is not None and view.fixed_px[0] == grid.stride:
             polys = view.fixed_px[1]
         else:
-            polys = [np.rint(o * sub).astype(np.int32) for o in view.outlines_px]
+            polys = [_fixed_point(o, grid.stride) for o in view.outlines_px]
         # The box origin goes in as fillPoly's offset, in the same fixed-point units.
         mask = np.zeros((r1 - r0 + 1, c1 - c0 + 1), np.uint8)
         cv2.fillPoly(mask, polys, 1, lineType=cv2.LINE_8, shift=_SUBPIXEL_BITS, offset=(-c0 * one, -r0 * one))

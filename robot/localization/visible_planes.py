@@ -4,9 +4,8 @@ from __future__ import annotations
 
 from typing import Dict, List, Tuple
 
-from robot.base.geometry import pose_to_T_ground_robot
 from robot.config import CameraConfig
-from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
+from robot.localization.roi import camera_views
 from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import PlaneMap
 
@@ -14,11 +13,7 @@ VISIBLE_RANGE = 10.0  # m: report what is geometrically in view, beyond the loca
 
 
 def visible_planes(plane_map: PlaneMap, cam: CameraConfig, pose: Tuple[float, float, float]) -> List[Dict]:
-    grid = CameraGrid(cam.intrinsics_from_fov(), cam.width, cam.height, 1)
-    T_ground_camera = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
-    candidates = PlaneIndex(plane_map).in_view(T_ground_camera, grid.frustum, VISIBLE_RANGE)
-    views = predict_plane_views(plane_map, candidates, T_ground_camera, grid, VISIBLE_RANGE)
-    label = rasterize_views(views, grid)
+    views, label, _ = camera_views(plane_map, PlaneIndex(plane_map), cam, pose, VISIBLE_RANGE)
     out = []
     for k, v in enumerate(views):
         pixels = int((label == k).sum())

@@ -17,13 +17,17 @@ import re
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Dict, List, Optional, Sequence, Tuple
+from typing import TYPE_CHECKING, Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from robot.base.errors import ConfigError
-from robot.base.geometry import invert_transform
+from robot.base.files import IFC, check_regular_file, open_regular_file
+from robot.base.geometry import invert_transform, transform_points
 from robot.maps.plane_map import MapPlane, PlaneMap, make_plane
+
+if TYPE_CHECKING:  # needs shapely, which comes with the bim extra: imported where used
+    from robot.maps import wall_faces
 
 log = logging.getLogger(__name__)
 
@@ -110,12 +114,32 @@ def _schema_in_header(path: Path) -> str:
     return m.group(1) if m else ""
 
 
+_SPF_START = b"ISO-10303-21;"
+_SPF_END = b"END-ISO-10303-21;"
+
+
+def _check_complete(p: Path) -> None:
+    """ConfigError for a text (SPF) IFC file cut short: ifcopenshell reads what is there without a word."""
+    with open_regular_file(p, IFC) as f:
+        head = f.read(64)
+        size = f.seek(0, 2)
+        f.seek(max(0, size - 4096))
+        tail = f.read()
+    if not head.lstrip(b"\xef\xbb\xbf \t\r\n").startswith(_SPF_START):
+        return  # not the text format (ifcZIP, ifcXML): ifcopenshell judges it
+    tail = re.sub(rb"/\*.*?\*/", b"", tail, flags=re.DOTALL).rstrip()
+    if not tail.endswith(_SPF_END):
+        raise ConfigError(f"{p}: the IFC file is cut short: it does not end with {_SPF_END.decode()} "
+                          f"(an interrupted copy or download?)")
+
+
 def open_model(path):
-    """Open an IFC file; ConfigError for a missing extra, a missing file or an unreadable schema."""
+    """Open an IFC file; ConfigError for a missing extra, a missing, truncated or not regular file,
+    or an unreadable schema."""
     ifcopenshell = _require_ifcopenshell()
     p = Path(path)
-    if not p.is_file():
-        raise ConfigError(f"{p}: file not found")
+    check_regular_file(p, IFC)
+    _check_complete(p)
     try:
         model = ifcopenshell.open(str(p))
     except Exception as e:  # ifcopenshell raises SchemaError, Error or RuntimeError by version
@@ -329,31 +353,132 @@ def _drop_enclosed(planes: List[MapPlane], depth: float) -> Tuple[List[MapPlane]
     return planes, dropped
 
 
-def _wall_elements(model, target, info: StoreyInfo, scale: float, options: ImportOptions):
+@dataclass(frozen=True)
+class _Site:
+    """The storey being imported: its entity, its place among the storeys and its frame."""
+
+    target: Any  # the IfcBuildingStorey
+    info: StoreyInfo
+    storeys: List[StoreyInfo]  # all of the model's, lowest first
+    scale: float  # metres per model length unit
+    T_storey_world: np.ndarray
+
+
+@dataclass
+class _StoreyElements:
+    """The elements that make the storey's map, meshed and moved into the storey frame."""
+
+    walls: List[Any]  # walls and columns of the storey and those rising into it from below
+    meshes: List[wall_faces.ElementMesh]  # of the walls that have a body, in the order of ``walls``
+    no_body: List[Any]  # walls without a body
+    no_body_below: int  # elements of the storeys below without a body (so not known to rise into it)
+    occluders: List[wall_faces.Occluder]  # flat elements that hide parts of the walls
+
+
+class _Stopwatch:
+    """Seconds spent in each stage of the import, for the report."""
+
+    def __init__(self) -> None:
+        self._start = self._last = time.perf_counter()
+        self._laps: Dict[str, float] = {}
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self._laps[stage] = round(now - self._last, 3)
+        self._last = now
+
+    def seconds(self) -> Dict[str, float]:
+        return {**self._laps, "total": round(self._last - self._start, 3)}
+
+
+def _locate_storey(model, wanted: str, where: str, types: Sequence[str]) -> _Site:
+    scale = _unit_scale(model)
+    target = _find_storey(model, wanted, where)
+    storeys = list_storeys(model, types)
+    info = next(s for s in storeys if s.guid == target.GlobalId)
+    return _Site(target, info, storeys, scale, invert_transform(_placement(target, scale)))
+
+
+def _height_window(band: Tuple[float, float], info: StoreyInfo, options: ImportOptions) -> Tuple[float, float]:
+    """The z range to keep, storey frame: the camera band above the floor, cut at the next storey's."""
+    z_hi = band[1]
+    if options.clip_to_storey and info.height is not None:
+        z_hi = min(z_hi, info.height)
+    window = (max(0.0, band[0]), z_hi)
+    if window[1] <= window[0]:
+        raise ConfigError(f"camera band {band[0]:.2f}..{band[1]:.2f} m leaves no height to keep on storey "
+                          f"{info.name!r}")
+    return window
+
+
+def _wall_elements(model, site: _Site, options: ImportOptions) -> Tuple[List[Any], int]:
     """Walls of the storey, and those of the storeys below that rise into it; also the number of
     those below that have no body. A quick mesh without openings tells how high they reach."""
+    top = site.info.elevation + STOREY_TOL
     here, below = [], []
     for e in _elements(model, options.types):
         st = _storey_of(e)
-        if st is None or st.id() == target.id():
+        if st is None or st.id() == site.target.id():
             here.append(e)
-        elif float(_placement(st, scale)[2, 3]) <= info.elevation + STOREY_TOL:
+        elif float(_placement(st, site.scale)[2, 3]) <= top:
             below.append(e)
     rough = _meshes(model, below, openings=False, threads=options.threads)
-    rising = [e for e in below if e.id() in rough and rough[e.id()][0][:, 2].max() > info.elevation + STOREY_TOL]
+    rising = [e for e in below if e.id() in rough and rough[e.id()][0][:, 2].max() > top]
     return here + rising, sum(1 for e in below if e.id() not in rough)
 
 
-def _occluder_elements(model, target, storeys: List[StoreyInfo], info: StoreyInfo) -> List[Any]:
+def _occluder_elements(model, site: _Site) -> List[Any]:
     """Flat elements of this storey and the next one up (whose floor slab is this storey's ceiling)."""
-    next_up = [s for s in storeys if s.elevation > info.elevation + STOREY_TOL][:1]
-    wanted = {target.GlobalId} | {s.guid for s in next_up}
+    next_up = [s for s in site.storeys if s.elevation > site.info.elevation + STOREY_TOL][:1]
+    wanted = {site.target.GlobalId} | {s.guid for s in next_up}
     out = []
     for e in _elements(model, OCCLUDER_TYPES):
         st = _storey_of(e)
         if st is None or st.GlobalId in wanted:
             out.append(e)
     return out
+
+
+def _wall_meshes(walls: List[Any], meshes_by_id: Dict[int, Tuple[np.ndarray, np.ndarray]],
+                 T_storey_world: np.ndarray) -> Tuple[List[wall_faces.ElementMesh], List[Any]]:
+    """The meshes of the walls that have a body, in the storey frame; the walls that have none."""
+    from robot.maps import wall_faces
+
+    meshes, no_body = [], []
+    for e in walls:
+        if e.id() not in meshes_by_id:
+            no_body.append(e)
+            continue
+        v, tri = meshes_by_id[e.id()]
+        st = _storey_of(e)
+        meshes.append(wall_faces.ElementMesh(e.GlobalId, e.is_a(), e.Name or "", _storey_label(st) if st else "",
+                                             transform_points(T_storey_world, v), tri))
+    return meshes, no_body
+
+
+def _occluders(flats: List[Any], meshes_by_id: Dict[int, Tuple[np.ndarray, np.ndarray]],
+               T_storey_world: np.ndarray) -> List[wall_faces.Occluder]:
+    """Occluders, in the storey frame, of the flat elements that have a body and are flat indeed."""
+    from robot.maps import wall_faces
+
+    out = []
+    for e in flats:
+        if e.id() in meshes_by_id:
+            v, tri = meshes_by_id[e.id()]
+            occ = wall_faces.occluder_from_mesh(e.GlobalId, transform_points(T_storey_world, v), tri)
+            if occ is not None:
+                out.append(occ)
+    return out
+
+
+def _storey_elements(model, site: _Site, options: ImportOptions) -> _StoreyElements:
+    """Mesh the walls that reach into the storey (openings cut) and the flat elements that hide
+    parts of them, and move them into the storey frame."""
+    walls, no_body_below = _wall_elements(model, site, options)
+    flats = _occluder_elements(model, site)
+    meshes_by_id = _meshes(model, walls + flats, options.openings, options.threads)
+    meshes, no_body = _wall_meshes(walls, meshes_by_id, site.T_storey_world)
+    return _StoreyElements(walls, meshes, no_body, no_body_below, _occluders(flats, meshes_by_id, site.T_storey_world))
 
 
 def _map_planes(planes, meshes) -> Tuple[List[MapPlane], int]:
@@ -374,6 +499,76 @@ def _map_planes(planes, meshes) -> Tuple[List[MapPlane], int]:
     return out, invalid
 
 
+def _usable_planes(elements: _StoreyElements, window: Tuple[float, float], eye_z: float,
+                   options: ImportOptions) -> Tuple[List[MapPlane], wall_faces.FaceStats, int]:
+    """The map planes of the faces a camera can use within the window, without the polygons that
+    face a closed pocket; the face counts, and the number of polygons dropped for a pocket."""
+    from robot.maps import wall_faces
+
+    fopts = wall_faces.FaceOptions(z_lo=window[0], z_hi=window[1], min_width=options.min_width,
+                                   min_area=options.min_area, eye_z=eye_z)
+    planes, stats = wall_faces.wall_planes(elements.meshes, fopts, elements.occluders)
+    map_planes, stats.invalid = _map_planes(planes, elements.meshes)
+    map_planes, enclosed = _drop_enclosed(map_planes, ENCLOSED_DEPTH)
+    return map_planes, stats, enclosed
+
+
+def _no_body_warning(no_body: List[Any]) -> str:
+    listed = ", ".join(f"{e.is_a()} {e.Name or ''!r} ({e.GlobalId})" for e in no_body[:20])
+    more = f" and {len(no_body) - 20} more" if len(no_body) > 20 else ""
+    hint = ""
+    if any(getattr(e, "IsDecomposedBy", None) for e in no_body):
+        hint = ("; some are decomposed into parts: add the parts' class to the types "
+                "(--types IfcWall,IfcColumn,IfcBuildingElementPart)")
+    return f"skipped {len(no_body)} element(s) with no solid body: {listed}{more}{hint}"
+
+
+def _warnings(elements: _StoreyElements, stats: wall_faces.FaceStats) -> List[str]:
+    """What the user should know the map may lack: walls without a body, faces left unchecked."""
+    warnings = []
+    if elements.no_body:
+        warnings.append(_no_body_warning(elements.no_body))
+    if stats.non_closed_elements:
+        names = ", ".join(elements.meshes[i].guid for i in stats.non_closed_elements[:10])
+        warnings.append(f"{len(stats.non_closed_elements)} element mesh(es) are not closed, "
+                        f"so their face orientation is unchecked: {names}")
+    return warnings
+
+
+def _counts(elements: _StoreyElements, stats: wall_faces.FaceStats, enclosed: int,
+            map_planes: List[MapPlane]) -> Dict[str, int]:
+    counts = dict(elements=len(elements.walls), occluders=len(elements.occluders), no_body=len(elements.no_body),
+                  no_body_below=elements.no_body_below, **stats.as_dict())
+    counts.update(enclosed=enclosed, planes=len(map_planes), polygons=sum(len(mp.polygons) for mp in map_planes))
+    return counts
+
+
+def _report(p: Path, model, site: _Site, band: Tuple[float, float], eye_z: float, window: Tuple[float, float],
+            options: ImportOptions, counts: Dict[str, int], warnings: List[str],
+            seconds: Dict[str, float]) -> Dict[str, Any]:
+    """How the map was made: model, storey and frame, what was asked and what came of it."""
+    return {
+        "model": {
+            "file": p.name,
+            "sha256": _file_sha256(p),
+            "schema": getattr(model, "schema_identifier", model.schema),
+            "length_unit_m": site.scale,
+            "application": _application(model),
+        },
+        "storey": asdict(site.info),
+        "transform": {"T_storey_world": np.round(site.T_storey_world, 9).tolist(),
+                      "description": _describe_transform(site.T_storey_world)},
+        "band": [float(band[0]), float(band[1])],
+        "eye_z": float(eye_z),
+        "window": [float(window[0]), float(window[1])],
+        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()},
+        "counts": counts,
+        "warnings": warnings,
+        "seconds": seconds,
+        "ifcopenshell": _require_ifcopenshell().version,
+    }
+
+
 def import_storey(path, storey: str, band: Tuple[float, float], eye_z: float = 0.5,
                   options: ImportOptions = ImportOptions()) -> ImportResult:
     """Import the usable wall planes of one storey, in the storey's frame.
@@ -382,98 +577,26 @@ def import_storey(path, storey: str, band: Tuple[float, float], eye_z: float = 0
     :func:`robot.maps.tools.camera_height_band`); faces are clipped to the band and to the storey
     height, and cut where a slab, ceiling or beam meets them (above it when it is above the cameras).
     """
-    t0 = time.perf_counter()
-    model = open_model(path)
-    from robot.maps import wall_faces  # needs shapely, which comes with the bim extra
-
     p = Path(path)
-    t_open = time.perf_counter()
-    scale = _unit_scale(model)
-    target = _find_storey(model, storey, str(p))
-    storeys = list_storeys(model, options.types)
-    info = next(s for s in storeys if s.guid == target.GlobalId)
-    T_storey_world = invert_transform(_placement(target, scale))
-
-    elements, no_body_below = _wall_elements(model, target, info, scale, options)
-    occ_elements = _occluder_elements(model, target, storeys, info)
-    meshes_by_id = _meshes(model, elements + occ_elements, options.openings, options.threads)
-    t_geom = time.perf_counter()
-
-    def in_storey_frame(v: np.ndarray) -> np.ndarray:
-        return v @ T_storey_world[:3, :3].T + T_storey_world[:3, 3]
-
-    meshes: List[wall_faces.ElementMesh] = []
-    no_body = []
-    for e in elements:
-        if e.id() not in meshes_by_id:
-            no_body.append(e)
-            continue
-        v, tri = meshes_by_id[e.id()]
-        st = _storey_of(e)
-        meshes.append(wall_faces.ElementMesh(e.GlobalId, e.is_a(), e.Name or "", _storey_label(st) if st else "",
-                                             in_storey_frame(v), tri))
-    occluders = []
-    for e in occ_elements:
-        if e.id() in meshes_by_id:
-            v, tri = meshes_by_id[e.id()]
-            occ = wall_faces.occluder_from_mesh(e.GlobalId, in_storey_frame(v), tri)
-            if occ is not None:
-                occluders.append(occ)
-
-    z_hi = band[1]
-    if options.clip_to_storey and info.height is not None:
-        z_hi = min(z_hi, info.height)
-    window = (max(0.0, band[0]), z_hi)
-    if window[1] <= window[0]:
-        raise ConfigError(f"camera band {band[0]:.2f}..{band[1]:.2f} m leaves no height to keep on storey "
-                          f"{info.name!r}")
-    fopts = wall_faces.FaceOptions(z_lo=window[0], z_hi=window[1], min_width=options.min_width,
-                                   min_area=options.min_area, eye_z=eye_z)
-    planes, stats = wall_faces.wall_planes(meshes, fopts, occluders)
-    map_planes, stats.invalid = _map_planes(planes, meshes)
-    map_planes, enclosed = _drop_enclosed(map_planes, ENCLOSED_DEPTH)
+    clock = _Stopwatch()
+    # Open the model; find the storey, its height and its frame.
+    model = open_model(p)
+    clock.lap("open")
+    site = _locate_storey(model, storey, str(p), options.types)
+    # The heights to keep: the camera band, cut at the next storey's floor.
+    window = _height_window(band, site.info, options)
+    # Mesh the walls that reach into the storey and the flat elements that hide parts of them.
+    elements = _storey_elements(model, site, options)
+    clock.lap("geometry")
+    # Keep the wall faces a camera can use, as map planes.
+    map_planes, stats, enclosed = _usable_planes(elements, window, eye_z, options)
     if not map_planes:
-        raise ConfigError(f"{p}: storey {info.name!r} has no usable wall faces "
-                          f"({len(elements)} elements, {len(no_body)} without a body)")
-    plane_map = PlaneMap(map_planes, source=f"{p.name}:{info.name}")
-    t_faces = time.perf_counter()
-
-    warnings = []
-    if no_body:
-        listed = ", ".join(f"{e.is_a()} {e.Name or ''!r} ({e.GlobalId})" for e in no_body[:20])
-        more = f" and {len(no_body) - 20} more" if len(no_body) > 20 else ""
-        hint = ""
-        if any(getattr(e, "IsDecomposedBy", None) for e in no_body):
-            hint = ("; some are decomposed into parts: add the parts' class to the types "
-                    "(--types IfcWall,IfcColumn,IfcBuildingElementPart)")
-        warnings.append(f"skipped {len(no_body)} element(s) with no solid body: {listed}{more}{hint}")
-    if stats.non_closed_elements:
-        names = ", ".join(meshes[i].guid for i in stats.non_closed_elements[:10])
-        warnings.append(f"{len(stats.non_closed_elements)} element mesh(es) are not closed, "
-                        f"so their face orientation is unchecked: {names}")
-
-    counts = dict(elements=len(elements), occluders=len(occluders), no_body=len(no_body),
-                  no_body_below=no_body_below, **stats.as_dict())
-    counts.update(enclosed=enclosed, planes=len(map_planes), polygons=sum(len(mp.polygons) for mp in map_planes))
-    report = {
-        "model": {
-            "file": p.name,
-            "sha256": _file_sha256(p),
-            "schema": getattr(model, "schema_identifier", model.schema),
-            "length_unit_m": scale,
-            "application": _application(model),
-        },
-        "storey": asdict(info),
-        "transform": {"T_storey_world": np.round(T_storey_world, 9).tolist(),
-                      "description": _describe_transform(T_storey_world)},
-        "band": [float(band[0]), float(band[1])],
-        "eye_z": float(eye_z),
-        "window": [float(window[0]), float(window[1])],
-        "options": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(options).items()},
-        "counts": counts,
-        "warnings": warnings,
-        "seconds": {"open": round(t_open - t0, 3), "geometry": round(t_geom - t_open, 3),
-                    "faces": round(t_faces - t_geom, 3), "total": round(t_faces - t0, 3)},
-        "ifcopenshell": _require_ifcopenshell().version,
-    }
-    return ImportResult(plane_map, info, T_storey_world, window, report, warnings)
+        raise ConfigError(f"{p}: storey {site.info.name!r} has no usable wall faces "
+                          f"({len(elements.walls)} elements, {len(elements.no_body)} without a body)")
+    clock.lap("faces")
+    # Say what the map may lack, and record how it was made.
+    warnings = _warnings(elements, stats)
+    report = _report(p, model, site, band, eye_z, window, options, _counts(elements, stats, enclosed, map_planes),
+                     warnings, clock.seconds())
+    plane_map = PlaneMap(map_planes, source=f"{p.name}:{site.info.name}")
+    return ImportResult(plane_map, site.info, site.T_storey_world, window, report, warnings)

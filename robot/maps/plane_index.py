@@ -152,6 +152,17 @@ class PlaneIndex:
         keep = np.einsum("ij,ij->i", gap, gap) <= max_range * max_range
         return idx[keep].tolist()
 
+    def near_box(self, lo, hi, max_range: float) -> List[int]:
+        """Indices (sorted) of planes whose footprint box comes within ``max_range`` of the box lo..hi."""
+        lo = np.asarray(lo[:2], float)
+        hi = np.asarray(hi[:2], float)
+        idx = np.unique(self._planes.query(lo - max_range, hi + max_range))
+        if len(idx) == 0:
+            return []
+        gap = np.maximum(np.maximum(self._lo[idx] - hi, lo - self._hi[idx]), 0.0)
+        keep = np.einsum("ij,ij->i", gap, gap) <= max_range * max_range
+        return idx[keep].tolist()
+
     def _view_bounds(self, frustum: np.ndarray, max_range: float):
         """Corners of the range-truncated frustum and its six bounding planes (camera frame)."""
         key = (frustum.tobytes(), max_range)

@@ -1,24 +1,51 @@
-"""The plane map (DESIGN.md section 3): bounded planar polygons in the ground frame.
+"""The plane map: bounded planar polygons in the ground frame (docs/architecture.md, 'Frames and units').
 
 YAML: ``planes: [{id, vertices: [[x, y, z], ...]}]``, vertices counter-clockwise seen from the
 observable side, so the right-hand normal points at the observer. A plane may instead carry
 ``polygons: [[[x, y, z], ...], ...]`` (one wall face split by a door) and an optional
 ``source: {...}`` (IFC GlobalId, element type, storey). Single-polygon maps stay valid.
+
+Each plane has an as-built ``tolerance`` (m): one standard deviation of how far the built
+surface may lie from the drawn plane (plaster and drywall layers, walls set out a little off,
+bows). A plane's own ``tolerance:`` wins; else the map's top-level ``tolerance:``; else one
+from the IFC element type in its ``source`` (:func:`tolerance_for_source`); else
+``DEFAULT_TOLERANCE``. The localizer counts it as an error of every measurement of that plane
+that more pixels cannot average away.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Dict, List, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from robot.base.errors import ConfigError
+from robot.base.files import MAP
 from robot.base.geometry import newell_normal
-from robot.config.schema import Section, check_number, load_yaml_file
+from robot.config.ranges import Range, excerpt
+from robot.config.schema import Section, load_yaml_file
 
-PLANARITY_TOLERANCE = 0.001  # m: the issue's bound on a vertex's distance from its plane
+PLANARITY_TOLERANCE = 0.001  # m: how far a vertex may lie from its plane
 MIN_POLYGON_AREA = 1e-6  # m^2: below this the normal is numerically meaningless
+# Bounds of a map file: a site is under 2 km across (larger coordinates are unit mistakes, and
+# squared in the geometry they overflow); an imported campus storey has a few thousand planes.
+COORDINATE_RANGE = Range(-1000.0, 1000.0, "m")
+MAX_PLANES = 100_000
+MAX_POLYGONS_PER_PLANE = 1000
+MAX_VERTICES_PER_POLYGON = 10_000
+MAX_ID_CHARS = 200
+DEFAULT_TOLERANCE = 0.01  # m, 1 sigma: a wall on a site within about +-2 cm of the drawing
+TOLERANCE_RANGE = Range(0.0, 1.0, "m")
+# 1 sigma by IFC element type: a curtain wall is set out to a few millimetres, a plastered wall to
+# about a centimetre, slabs and stairs to more; furniture and proxies are wherever they were put.
+IFC_TYPE_TOLERANCE = {
+    "IfcCurtainWall": 0.005, "IfcColumn": 0.008, "IfcWall": 0.01, "IfcWallStandardCase": 0.01,
+    "IfcWallElementedCase": 0.01, "IfcCovering": 0.01, "IfcPlate": 0.01, "IfcMember": 0.01,
+    "IfcSlab": 0.015, "IfcRoof": 0.015, "IfcDoor": 0.02, "IfcWindow": 0.02, "IfcStair": 0.02,
+    "IfcStairFlight": 0.02, "IfcRamp": 0.02, "IfcRailing": 0.02, "IfcBuildingElementProxy": 0.03,
+    "IfcFurnishingElement": 0.05,
+}
 
 
 @dataclass(frozen=True)
@@ -28,6 +55,7 @@ class MapPlane:
     d: float  # n_G . p + d = 0
     polygons: Tuple[np.ndarray, ...]  # each (K, 3), counter-clockwise seen from the normal side
     source: Dict[str, Any] = field(default_factory=dict)
+    tolerance: float = DEFAULT_TOLERANCE  # m, 1 sigma of the built surface from this plane, along its normal
 
     @property
     def pi(self) -> np.ndarray:
@@ -56,9 +84,6 @@ class PlaneMap:
     def __getitem__(self, plane_id: str) -> MapPlane:
         return self.planes[self._index[plane_id]]
 
-    def index_of(self, plane_id: str) -> int:
-        return self._index[plane_id]
-
     @property
     def plane_array(self) -> np.ndarray:
         """(N, 4) planes (n, d) in G, in map order."""
@@ -79,13 +104,26 @@ class PlaneMap:
                 item["polygons"] = polys
             if p.source:
                 item["source"] = dict(p.source)
+            if p.tolerance != tolerance_for_source(p.source):
+                item["tolerance"] = round(float(p.tolerance), 6)
             out.append(item)
         return {"planes": out}
 
 
+def tolerance_for_source(source: Any) -> float:
+    """The as-built tolerance of a plane imported from these IFC element types (the loosest of
+    them), DEFAULT_TOLERANCE when the source names none."""
+    types = source.get("ifc_type") if isinstance(source, dict) else None
+    if isinstance(types, str):
+        types = [types]
+    known = [IFC_TYPE_TOLERANCE[t] for t in types or () if isinstance(t, str) and t in IFC_TYPE_TOLERANCE]
+    return max(known) if known else DEFAULT_TOLERANCE
+
+
 def make_plane(plane_id: str, polygons: Sequence[Sequence[Sequence[float]]], source=None,
-               where: str = "") -> MapPlane:
-    """Validate polygons and build a plane; raises ValueError naming the problem."""
+               where: str = "", tolerance: Optional[float] = None) -> MapPlane:
+    """Validate polygons and build a plane; raises ValueError naming the problem. ``tolerance``
+    None: from the source's IFC element type (:func:`tolerance_for_source`)."""
     where = where or f"plane '{plane_id}'"
     polys = []
     for k, poly in enumerate(polygons):
@@ -116,23 +154,33 @@ def make_plane(plane_id: str, polygons: Sequence[Sequence[Sequence[float]]], sou
         nk = newell_normal(arr)
         if k > 0 and nk @ n <= 0:
             raise ValueError(f"{where}: polygon {k} is listed clockwise relative to polygon 0 (flipped)")
-    return MapPlane(plane_id, n, d, tuple(polys), dict(source or {}))
+    tol = tolerance_for_source(source) if tolerance is None else float(tolerance)
+    if not (np.isfinite(tol) and TOLERANCE_RANGE.lo <= tol <= TOLERANCE_RANGE.hi):
+        raise ValueError(f"{where}: tolerance must be in {TOLERANCE_RANGE.describe()}, got {tol}")
+    return MapPlane(plane_id, n, d, tuple(polys), dict(source or {}), tol)
 
 
 def parse_plane_map(data: Any, source: str = "<map>") -> PlaneMap:
     top = Section(data, "", source)
     raw = top.raw("planes")
+    map_tolerance = top.ranged("tolerance", TOLERANCE_RANGE, None) if top.has("tolerance") else None
     top.done()
     if not isinstance(raw, list) or not raw:
         top.fail("'planes' must be a non-empty list")
+    if len(raw) > MAX_PLANES:
+        top.fail(f"'planes' lists {len(raw)} planes, at most {MAX_PLANES} are allowed")
     planes: List[MapPlane] = []
     seen = set()
     for i, item in enumerate(raw):
         sec = Section(item, f"planes[{i}]", source)
         pid = sec.raw("id")
         if not isinstance(pid, (str, int)) or isinstance(pid, bool) or str(pid) == "":
-            sec.fail(f"'id' must be a non-empty string, got {pid!r}")
+            sec.fail(f"'id' must be a non-empty string, got {excerpt(pid)}")
+        if isinstance(pid, int) and pid.bit_length() > 64:
+            sec.fail(f"'id' must be a string of at most {MAX_ID_CHARS} characters")
         pid = str(pid)
+        if len(pid) > MAX_ID_CHARS:
+            sec.fail(f"'id' must be at most {MAX_ID_CHARS} characters, got {excerpt(pid)}")
         sec.where = f"plane '{pid}'"
         if pid in seen:
             sec.fail("duplicate id")
@@ -145,25 +193,32 @@ def parse_plane_map(data: Any, source: str = "<map>") -> PlaneMap:
             polygons = sec.raw("polygons")
             if not isinstance(polygons, list) or not polygons:
                 sec.fail("'polygons' must be a non-empty list of polygons")
+            if len(polygons) > MAX_POLYGONS_PER_PLANE:
+                sec.fail(f"{len(polygons)} polygons, at most {MAX_POLYGONS_PER_PLANE} are allowed per plane")
         for k, poly in enumerate(polygons):
             if not isinstance(poly, list) or not all(isinstance(v, list) and len(v) == 3 for v in poly):
                 sec.fail(f"polygon {k} must be a list of [x, y, z] vertices")
-            for v in poly:
+            if len(poly) > MAX_VERTICES_PER_POLYGON:
+                sec.fail(f"polygon {k} has {len(poly)} vertices, at most {MAX_VERTICES_PER_POLYGON} are allowed")
+            for j, v in enumerate(poly):
                 for c in v:
-                    check_number(c, "vertex coordinate", sec)
+                    why = COORDINATE_RANGE.problem(c)
+                    if why is not None:
+                        sec.fail(f"polygon {k} vertex {j}: a coordinate {why}")
         src = sec.raw("source", {})
         if not isinstance(src, dict):
             sec.fail("'source' must be a mapping")
+        tol = sec.ranged("tolerance", TOLERANCE_RANGE) if sec.has("tolerance") else map_tolerance
         sec.done()
         try:
-            planes.append(make_plane(pid, polygons, src))
+            planes.append(make_plane(pid, polygons, src, tolerance=tol))
         except ValueError as e:
             raise ConfigError(f"{source}: {e}") from None
     return PlaneMap(planes, source=source)
 
 
 def load_plane_map(path) -> PlaneMap:
-    return parse_plane_map(load_yaml_file(path), source=str(path))
+    return parse_plane_map(load_yaml_file(path, MAP), source=str(path))
 
 
 def save_plane_map(plane_map: PlaneMap, path, header: str = "") -> None:

@@ -37,6 +37,7 @@ from typing import Any, Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from robot.base.errors import ConfigError
+from robot.base.geometry import plane_axes
 from robot.maps.plane_map import MapPlane, PlaneMap, parse_plane_map
 
 VERTICAL_SIN = math.sin(math.radians(1.0))
@@ -134,14 +135,6 @@ class MapIssue:
         return {"code": self.code, "severity": self.severity, "planes": list(self.planes), "message": self.message}
 
 
-def _basis(n: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-    """Two in-plane axes (a, b) with a x b = n, so (a, b) coordinates keep the winding seen from n."""
-    helper = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    a = np.cross(helper, n)
-    a /= np.linalg.norm(a)
-    return a, np.cross(n, a)
-
-
 def _to2d(poly: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.column_stack([poly @ a, poly @ b])
 
@@ -209,7 +202,7 @@ class _Poly:
 def _polys(plane_map: PlaneMap) -> List[_Poly]:
     out = []
     for i, p in enumerate(plane_map.planes):
-        a, b = _basis(p.normal)
+        a, b = plane_axes(p.normal)
         for k, poly in enumerate(p.polygons):
             out.append(_Poly(i, k, poly, _to2d(poly, a, b), a, b))
     return out

@@ -1,4 +1,4 @@
-"""Which map polygons a camera can see (DESIGN.md section 4 step 1). Pure numpy.
+"""Which map polygons a camera can see: the first step of every localization. Pure numpy.
 
 The paper classifies vertices in an *extended image coordinate system* and tests edges against
 the frustum. That misses a polygon that covers the whole view with every vertex and edge
@@ -10,8 +10,7 @@ cheap, explainable first answer and the paper's vocabulary.
 from __future__ import annotations
 
 import enum
-import math
-from typing import List, Optional
+from typing import List, Optional, Sequence
 
 import numpy as np
 
@@ -77,34 +76,42 @@ def frustum_planes(K: np.ndarray, width: int, height: int, near: float = NEAR_PL
 
 
 def clip_polygon(poly: np.ndarray, planes: np.ndarray) -> Optional[np.ndarray]:
-    """Sutherland-Hodgman clip of a convex or concave planar polygon to the half-spaces
-    n . p + d >= 0. Returns the clipped (K, 3) polygon or None if nothing remains."""
+    """Clip a convex or concave planar (K, 3) polygon to the half-spaces n . p + d >= 0 of the
+    (M, 4) ``planes``; None if nothing remains. The work is :func:`clip_vertex_list`'s."""
     out = np.asarray(poly, dtype=float)
-    side = out @ planes[:, :3].T + planes[:, 3]
-    if (side >= 0).all():
+    outside = (out @ planes[:, :3].T + planes[:, 3] < 0).any(axis=0)
+    if not outside.any():
         return out  # entirely inside: the common case for a wall in front of the camera
-    for pl in planes:
-        if len(out) == 0:
+    clipped = clip_vertex_list(out.tolist(), planes[outside].tolist())
+    return None if clipped is None else np.array(clipped)
+
+
+def clip_vertex_list(pts: List[List[float]], planes: Sequence[Sequence[float]]) -> Optional[List[List[float]]]:
+    """Sutherland-Hodgman clip of a polygon, as a list of [x, y, z], to the half-spaces
+    n . p + d >= 0 of ``planes`` (each [nx, ny, nz, d]); None if fewer than 3 vertices remain.
+
+    Python floats, not numpy: for the few vertices of a wall polygon, per-call numpy overhead
+    costs more than the arithmetic, and this runs for every polygon that crosses the frustum in
+    every frame. Callers may pass only the planes that some vertex is outside of: clipping never
+    moves a vertex outside another half-space, as new vertices lie between old ones.
+    """
+    for a, b, c, d in planes:
+        s = [a * x + b * y + c * z + d for x, y, z in pts]
+        if max(s) < 0:
             return None
-        s = out @ pl[:3] + pl[3]
-        inside = s >= 0
-        if inside.all():
-            continue
-        if not inside.any():
-            return None
-        nxt = np.roll(out, -1, axis=0)
-        s_n = np.roll(s, -1)
-        pts: List[np.ndarray] = []
-        for i in range(len(out)):
-            if inside[i]:
-                pts.append(out[i])
-            if inside[i] != (s_n[i] >= 0):
-                t = s[i] / (s[i] - s_n[i])
-                pts.append(out[i] + t * (nxt[i] - out[i]))
-        out = np.array(pts)
-    if len(out) < 3:
-        return None
-    return out
+        out = []
+        n = len(pts)
+        for i in range(n):
+            j = i + 1 if i + 1 < n else 0
+            si, sj = s[i], s[j]
+            if si >= 0:
+                out.append(pts[i])
+            if (si >= 0) != (sj >= 0):
+                t = si / (si - sj)
+                p, q = pts[i], pts[j]
+                out.append([p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1]), p[2] + t * (q[2] - p[2])])
+        pts = out
+    return pts if len(pts) >= 3 else None
 
 
 def project(K: np.ndarray, p_camera: np.ndarray) -> np.ndarray:
@@ -112,7 +119,3 @@ def project(K: np.ndarray, p_camera: np.ndarray) -> np.ndarray:
     z = p_camera[:, 2]
     return np.stack([K[0, 0] * p_camera[:, 0] / z + K[0, 2], K[1, 1] * p_camera[:, 1] / z + K[1, 2]], axis=1)
 
-
-def fov_from_K(K: np.ndarray, width: int, height: int):
-    """Horizontal and vertical field of view (radians) of the pixel frustum."""
-    return 2 * math.atan(width / 2.0 / K[0, 0]), 2 * math.atan(height / 2.0 / K[1, 1])

@@ -19,7 +19,7 @@ Steps, for the elements of one storey already in the map frame (floor at z = 0):
 
 A face is worked on in 2D coordinates of its plane: ``s`` along ``r = z x n`` (to the right of a
 viewer facing the face) and ``t`` along ``u = n x r`` (up). A polygon counter-clockwise in (s, t) is
-counter-clockwise seen from the normal side, which is the map's convention (DESIGN.md section 3).
+counter-clockwise seen from the normal side, which is the map's convention (docs/architecture.md, 'Frames and units').
 Triangles must be counter-clockwise seen from outside the solid, so normals point at the free side.
 """
 
@@ -34,7 +34,8 @@ import shapely
 from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
-Z_AXIS = np.array([0.0, 0.0, 1.0])
+from robot.base.geometry import plane_axes
+
 GRID = 1e-4  # m: snapping grid for the 2D unions; far below any tolerance that matters
 SIMPLIFY = 0.002  # m: outline vertices closer than this to the line of their neighbours are dropped
 
@@ -125,9 +126,7 @@ class _Face:
 
 
 def _face_frame(n: np.ndarray, d: float, shape, element: int) -> _Face:
-    r = np.cross(Z_AXIS, n)
-    r = r / np.linalg.norm(r)
-    u = np.cross(n, r)
+    r, u = plane_axes(n)
     return _Face(n, d, r, u, shape, element, float(shape.area), [element])
 
 

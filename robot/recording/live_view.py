@@ -1,23 +1,19 @@
 """Live view for engineers: a Foxglove WebSocket server inside the app's event loop.
 
-Channels (JSON encoding, JSON Schema; Foxglove well-known schemas where one fits, as supersets,
-so the 3D, Image and Plot panels work without configuration):
-
-- ``/map``: ``foxglove.SceneUpdate`` drawing every wall polygon and its id, plus ``planes``
-  (id, normal, d, polygons). Latched: sent when published and to every client that subscribes.
-- ``/pose``: ``foxglove.PoseInFrame`` plus ``t``, ``x``, ``y``, ``phi``, ``cov`` (3x3 row-major),
-  ``quality`` (localized | degraded | lost) and ``reason`` (same fields as the recording's).
-- ``/planes``: per-plane fit results of one camera frame: camera, and per plane id, inliers,
-  used, reason.
-- ``/roi/<camera>``: ``foxglove.CompressedImage``, the ROI label image as a colour PNG.
-- ``/cmd``: the body velocity command (vx, vy, wz) and, when given, the wheel speeds.
+Channels (``schema.LIVE_TOPICS``): ``/map`` and ``/tf_static`` (latched: sent when published and
+to every client that subscribes), ``/tf``, ``/pose``, ``/planes``, ``/plane_fits``, ``/cmd``,
+``/status``, ``/depth/<camera>`` and ``/roi/<camera>``. Their topic names, schemas and messages
+come from ``robot.recording.schema``, the schema set the MCAP recording uses too, so one
+Foxglove layout (``docs/foxglove-layout.json``) serves a live robot and a replay of its recording.
 
 Cost and safety: ``publish_*`` are plain calls that never block and never raise. With no
 client subscribed to a channel they return after one set lookup, before building anything.
 Otherwise the message is encoded once and queued per client; each client has its own writer
-task and a bounded queue, so a slow or stalled client loses its oldest messages (counted in
-``stats``) without delaying the caller or the other clients. ROI images, the one message that
-costs milliseconds to encode on a Nano, are rate-limited and PNG-encoded in a worker thread.
+task and a queue bounded in messages and in bytes, so a slow or stalled client loses its oldest
+messages (counted in ``stats``) without delaying the caller or the other clients. Images, the
+messages that cost milliseconds to encode on a Nano, are encoded in a worker thread, one at a
+time per camera: ROI images at most ``schema.ROI_MAX_HZ``, depth images decimated to at most
+``DEPTH_MAX_WIDTH`` pixels wide and within the depth budget (``set_depth_budget``, Mbit/s).
 
 ``foxglove-websocket`` (the optional ``live`` extra) is imported only by ``LiveView.start``.
 It is an inactive package (frozen at 0.1.4) built on websockets' legacy server; per-client
@@ -29,180 +25,29 @@ nothing: the default, and what the app uses when the extra is missing.
 from __future__ import annotations
 
 import asyncio
-import base64
 import collections
-import json
 import logging
-import math
 import threading
 import warnings
-from typing import Any, Callable, Deque, Dict, Iterable, List, Mapping, Optional, Sequence
+from typing import Any, Callable, Deque, Dict, Iterable, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
 from robot.base.errors import ConfigError, DriverError
+from robot.base.samples import DepthFrame
 from robot.recording import schema as ms
+from robot.recording.budget import ByteBudget
 
 log = logging.getLogger(__name__)
 
-TOPIC_MAP = "/map"
-TOPIC_POSE = "/pose"
-TOPIC_PLANES = "/planes"
-TOPIC_CMD = "/cmd"
-ROI_PREFIX = "/roi/"
-MAP_FRAME = "map"
 SUBPROTOCOL = "foxglove.websocket.v1"
 INSTALL_HINT = "pip install 'planeloc-robot[live]'"
 
-DEFAULT_CLIENT_QUEUE = 32  # messages per client: about 1 s of pose and planes at 30 Hz
-ROI_MAX_WIDTH = 424  # px: the label image is a diagnostic; a larger one is decimated
-ROI_MAX_HZ = 5.0  # per camera: PNG encoding is the only per-message cost that is not trivial
-
-_NUM = {"type": "number"}
-_STR = {"type": "string"}
-_POINT = {"type": "object", "properties": {"x": _NUM, "y": _NUM, "z": _NUM}}
-_COLOR = {"type": "object", "properties": {"r": _NUM, "g": _NUM, "b": _NUM, "a": _NUM}}
-_POSE = {"type": "object", "properties": {
-    "position": _POINT, "orientation": {"type": "object", "properties": {"x": _NUM, "y": _NUM, "z": _NUM, "w": _NUM}}}}
-
-
-def _schema(title: str, description: str, properties: Dict[str, Any]) -> Dict[str, Any]:
-    return {"title": title, "description": description, "type": "object", "properties": properties}
-
-
-MAP_SCHEMA = ("foxglove.SceneUpdate", _schema(
-    "foxglove.SceneUpdate", "The plane map: wall outlines and ids for the 3D panel, and the planes themselves",
-    {"deletions": {"type": "array", "items": {"type": "object"}},
-     "entities": {"type": "array", "items": {"type": "object", "properties": {
-         "timestamp": ms._TIME, "frame_id": _STR, "id": _STR, "frame_locked": {"type": "boolean"},
-         "lifetime": ms._TIME,
-         "lines": {"type": "array", "items": {"type": "object", "properties": {
-             "type": {"type": "integer"}, "pose": _POSE, "thickness": _NUM, "scale_invariant": {"type": "boolean"},
-             "points": {"type": "array", "items": _POINT}, "color": _COLOR}}},
-         "texts": {"type": "array", "items": {"type": "object", "properties": {
-             "pose": _POSE, "billboard": {"type": "boolean"}, "font_size": _NUM,
-             "scale_invariant": {"type": "boolean"}, "color": _COLOR, "text": _STR}}}}}},
-     "planes": {"type": "array", "items": {"type": "object", "properties": {
-         "id": _STR, "normal": {"type": "array", "items": _NUM}, "d": _NUM,
-         "polygons": {"type": "array", "items": {"type": "array", "items": {"type": "array", "items": _NUM}}}}}}}))
-
-POSE_SCHEMA = ("foxglove.PoseInFrame", _schema(
-    "foxglove.PoseInFrame", "Fused pose (x, y, phi) in the map frame, its 3x3 covariance and the quality state",
-    {"timestamp": ms._TIME, "frame_id": _STR, "pose": _POSE, "t": _NUM, "x": _NUM, "y": _NUM, "phi": _NUM,
-     "cov": {"type": "array", "items": _NUM, "minItems": 9, "maxItems": 9,
-             "description": "3x3 covariance of (x, y, phi), row-major"},
-     "quality": {"type": ["string", "null"], "description": "localized | degraded | lost"},
-     "reason": {"type": "string", "description": "why the quality is not 'localized'; empty when it is"}}))
-
-PLANES_SCHEMA = ("robot.PlaneReports", _schema(
-    "robot.PlaneReports", "Per-plane results of localizing one camera frame: which planes were fitted and used, "
-    "and why not", {"t": _NUM, "camera": _STR, "planes": {"type": "array", "items": {"type": "object", "properties": {
-        "id": _STR, "camera": _STR, "inliers": {"type": "integer"}, "used": {"type": "boolean"},
-        "reason": _STR}}}}))
-
-CMD_SCHEMA = ("robot.VelocityCommand", _schema(
-    "robot.VelocityCommand", "Body velocity command of the trajectory controller (robot frame)",
-    {"t": _NUM, "vx": _NUM, "vy": _NUM, "wz": _NUM,
-     "wheel_speeds": {"type": ["array", "null"], "items": _NUM,
-                      "description": "front-left, front-right, rear-left, rear-right, rad/s"}}))
-
-ROI_SCHEMA = ("foxglove.CompressedImage", _schema(
-    "foxglove.CompressedImage", "ROI label image: one colour per predicted plane, dark where no plane is expected",
-    {"timestamp": ms._TIME, "frame_id": _STR, "data": {"type": "string", "contentEncoding": "base64"},
-     "format": _STR}))
-
-# Label colours (RGB): distinct hues, so neighbouring planes are told apart at a glance.
-PALETTE = np.array([
-    (230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
-    (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212), (0, 128, 128), (170, 110, 40),
-], dtype=np.uint8)
-NO_PLANE_RGB = (24, 24, 24)
-
-
-# Message encoding (pure)  -------------------------------------------------------------------------
-
-def map_message(plane_map, t: float = 0.0) -> Dict[str, Any]:
-    """``/map``: a SceneUpdate with each polygon as a closed line and each plane id as a label."""
-    lines: List[Dict[str, Any]] = []
-    texts: List[Dict[str, Any]] = []
-    planes: List[Dict[str, Any]] = []
-    identity = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
-    for i, plane in enumerate(plane_map.planes):
-        r, g, b = (PALETTE[i % len(PALETTE)] / 255.0).tolist()
-        for poly in plane.polygons:
-            lines.append({"type": 1, "pose": identity, "thickness": 2.0, "scale_invariant": True,
-                          "points": [{"x": float(p[0]), "y": float(p[1]), "z": float(p[2])} for p in poly],
-                          "color": {"r": r, "g": g, "b": b, "a": 1.0}, "colors": [], "indices": []})
-        c = np.asarray(plane.vertices, dtype=float).mean(axis=0)
-        texts.append({"pose": {"position": {"x": float(c[0]), "y": float(c[1]), "z": float(c[2])},
-                               "orientation": identity["orientation"]},
-                      "billboard": True, "font_size": 12.0, "scale_invariant": True,
-                      "color": {"r": r, "g": g, "b": b, "a": 1.0}, "text": plane.id})
-        planes.append({"id": plane.id, "normal": [float(v) for v in plane.normal], "d": float(plane.d),
-                       "polygons": [[[float(v) for v in p] for p in poly] for poly in plane.polygons]})
-    entity = {"timestamp": ms.stamp(t), "frame_id": MAP_FRAME, "id": "map", "lifetime": {"sec": 0, "nsec": 0},
-              "frame_locked": True, "metadata": [], "arrows": [], "cubes": [], "spheres": [], "cylinders": [],
-              "lines": lines, "triangles": [], "texts": texts, "models": []}
-    return {"deletions": [], "entities": [entity], "planes": planes}
-
-
-def pose_message(t: float, x: float, y: float, phi: float, cov: Any, quality: Optional[str] = None,
-                 reason: str = "") -> Dict[str, Any]:
-    """``/pose``: the recording's pose message plus the quality's reason."""
-    msg = ms.pose_message(t, x, y, phi, cov, quality=quality, frame_id=MAP_FRAME)
-    msg["reason"] = str(reason)
-    return msg
-
-
-def planes_message(t: float, camera: str, reports: Iterable[Any]) -> Dict[str, Any]:
-    """``/planes`` for one camera frame, from ``PlaneReport`` objects (robot.localization.localizer) or their
-    ``to_json()`` mappings."""
-    out = []
-    for r in reports:
-        get = r.get if isinstance(r, Mapping) else (lambda k, _r=r: getattr(_r, k))
-        out.append({"id": str(get("id")), "camera": str(get("camera")), "inliers": int(get("inliers")),
-                    "used": bool(get("used")), "reason": str(get("reason"))})
-    return {"t": float(t), "camera": str(camera), "planes": out}
-
-
-def cmd_message(t: float, vx: float, vy: float, wz: float,
-                wheel_speeds: Optional[Sequence[float]] = None) -> Dict[str, Any]:
-    return {"t": float(t), "vx": float(vx), "vy": float(vy), "wz": float(wz),
-            "wheel_speeds": None if wheel_speeds is None else [float(v) for v in wheel_speeds]}
-
-
-def _check_label(label) -> np.ndarray:
-    lab = np.asarray(label)
-    if lab.ndim != 2 or lab.size == 0 or not np.issubdtype(lab.dtype, np.integer):
-        raise ValueError(f"ROI label image must be a non-empty 2-D integer array, got {lab.dtype} {lab.shape}")
-    return lab
-
-
-# OpenCV writes BGR; the last row is for pixels of no plane.
-_LUT_BGR = np.ascontiguousarray(np.vstack([PALETTE, [NO_PLANE_RGB]]).astype(np.uint8)[:, ::-1])
-
-
-def roi_png(label: np.ndarray, max_width: int = ROI_MAX_WIDTH) -> bytes:
-    """Colour PNG of a label image (plane index per pixel, negative for none), decimated to fit."""
-    import cv2
-
-    lab = _check_label(label)
-    step = max(1, int(math.ceil(lab.shape[1] / float(max_width))))
-    lab = lab[::step, ::step]
-    idx = np.where(lab < 0, len(PALETTE), np.mod(lab, len(PALETTE))).astype(np.uint8)
-    ok, png = cv2.imencode(".png", np.take(_LUT_BGR, idx, axis=0), [cv2.IMWRITE_PNG_COMPRESSION, 1])
-    if not ok:
-        raise ValueError("PNG encoding of the ROI label image failed")
-    return png.tobytes()
-
-
-def roi_message(t: float, camera: str, label: np.ndarray) -> Dict[str, Any]:
-    return {"timestamp": ms.stamp(t), "frame_id": camera, "format": "png",
-            "data": base64.b64encode(roi_png(label)).decode("ascii")}
-
-
-def roi_topic(camera: str) -> str:
-    return ROI_PREFIX + camera
+DEFAULT_CLIENT_QUEUE = 256  # messages per client: about 1 s of pose, tf and command at 50 Hz, planes at 30 Hz
+DEFAULT_CLIENT_BYTES = 8 * 1024 * 1024  # and bytes: a stalled client holds a few depth images, not hundreds
+ROI_MAX_HZ = ms.ROI_MAX_HZ
+DEPTH_MAX_WIDTH = 424  # px: a live depth image is for looking at; every n-th pixel is enough
+DEFAULT_DEPTH_MBIT_S = 8.0  # until the app sets the robot config's budget
 
 
 # Availability and choice  ---------------------------------------------------------------------
@@ -255,13 +100,28 @@ class NullLiveView:
     def stats(self) -> Dict[str, int]:
         return {"clients": 0, "sent": 0, "dropped": 0, "errors": 0}
 
-    async def start(self, plane_map=None) -> None:
+    async def start(self, plane_map=None, cameras: Sequence[str] = ()) -> None:
         pass
 
     async def stop(self) -> None:
         pass
 
+    def set_depth_budget(self, max_mbit_s: float) -> None:
+        pass
+
     def publish_map(self, plane_map, t: float = 0.0) -> None:
+        pass
+
+    def publish_static_transforms(self, t: float, transforms: Sequence[Tuple[str, str, Any]]) -> None:
+        pass
+
+    def publish_tf(self, t: float, T_map_odom: Sequence[float], T_odom_base: Sequence[float]) -> None:
+        pass
+
+    def publish_depth(self, t: float, frame: DepthFrame) -> None:
+        pass
+
+    def publish_status(self, t: float, status: Mapping[str, Any]) -> None:
         pass
 
     def publish_pose(self, t: float, x: float, y: float, phi: float, cov: Any, quality: Optional[str] = None,
@@ -284,11 +144,13 @@ class NullLiveView:
 class _Outbox:
     """What waits to go to one client: a latched slot (the map) and a bounded queue, oldest dropped."""
 
-    def __init__(self, connection, limit: int, closed_exc):
+    def __init__(self, connection, limit: int, closed_exc, max_bytes: int = DEFAULT_CLIENT_BYTES):
         self.connection = connection
         self.limit = max(1, int(limit))
+        self.max_bytes = max(1, int(max_bytes))
         self.items: Deque[bytes] = collections.deque()
-        self.latched: Optional[bytes] = None
+        self.queued_bytes = 0
+        self.latched: Dict[int, bytes] = {}  # by subscription: the latest map, the latest mounts
         self.sent = 0
         self.dropped = 0
         self._closed_exc = closed_exc
@@ -296,14 +158,15 @@ class _Outbox:
         self.task: Optional[asyncio.Task] = None
 
     def push(self, frame: bytes) -> None:
-        if len(self.items) >= self.limit:
-            self.items.popleft()
+        while self.items and (len(self.items) >= self.limit or self.queued_bytes + len(frame) > self.max_bytes):
+            self.queued_bytes -= len(self.items.popleft())
             self.dropped += 1
         self.items.append(frame)
+        self.queued_bytes += len(frame)
         self._wake.set()
 
-    def push_latched(self, frame: bytes) -> None:
-        self.latched = frame  # a newer map replaces one not sent yet
+    def push_latched(self, subscription: int, frame: bytes) -> None:
+        self.latched[subscription] = frame  # a newer one replaces one not sent yet
         self._wake.set()
 
     async def run(self) -> None:
@@ -311,11 +174,12 @@ class _Outbox:
             while True:
                 await self._wake.wait()
                 self._wake.clear()
-                while self.latched is not None or self.items:
-                    if self.latched is not None:
-                        frame, self.latched = self.latched, None
+                while self.latched or self.items:
+                    if self.latched:
+                        frame = self.latched.pop(next(iter(self.latched)))
                     else:
                         frame = self.items.popleft()
+                        self.queued_bytes -= len(frame)
                     # waits only when the socket's buffer is full: a slow client, whose queue then drops
                     await self.connection.send(frame)
                     self.sent += 1
@@ -325,20 +189,37 @@ class _Outbox:
             log.debug("live view: writer for %s stopped: %r", getattr(self.connection, "remote_address", "?"), e)
 
 
+class _Latched:
+    """A latched channel's latest message: built on first demand, then kept as bytes."""
+
+    def __init__(self, t: float, build: Callable[[], Dict[str, Any]]):
+        self.t = t
+        self.build = build
+        self.payload: Optional[bytes] = None
+
+    def bytes(self) -> bytes:
+        if self.payload is None:
+            self.payload = ms.dumps(self.build())
+        return self.payload
+
+
 class LiveView:
     """Foxglove WebSocket server in the running event loop. ``await start()``, publish, ``await stop()``.
 
     ``publish_*`` may be called from any thread (calls from other threads are handed to the loop),
-    and before ``start`` or after ``stop``: they do nothing then, except that the map is kept.
+    and before ``start`` or after ``stop``: they do nothing then, except that the latched
+    messages (the map, the camera mounts) are kept.
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8765, *, cameras: Sequence[str] = (),
                  name: str = "planeloc robot", client_queue: int = DEFAULT_CLIENT_QUEUE,
-                 roi_max_hz: float = ROI_MAX_HZ):
+                 roi_max_hz: float = ROI_MAX_HZ, client_bytes: int = DEFAULT_CLIENT_BYTES,
+                 depth_max_mbit_s: float = DEFAULT_DEPTH_MBIT_S):
         self.host = host
         self.port = int(port)
         self.name = name
         self.client_queue = int(client_queue)
+        self.client_bytes = int(client_bytes)
         self.roi_min_period = 1.0 / roi_max_hz if roi_max_hz > 0 else 0.0
         self._cameras = list(cameras)
         self._server = None
@@ -348,11 +229,11 @@ class LiveView:
         self._adding: Dict[str, asyncio.Task] = {}
         self._subscribed: set = set()  # channel ids with at least one subscriber (the server's listener)
         self._outboxes: Dict[int, _Outbox] = {}  # by id(connection)
-        self._map = None  # the latest plane map, encoded on first demand
-        self._map_t = 0.0
-        self._map_bytes: Optional[bytes] = None
+        self._latched: Dict[str, _Latched] = {}  # by topic: the latest map and camera mounts
+        self._map = None  # the latest plane map (also what /plane_fits outlines)
+        self._depth_budget = ByteBudget(depth_max_mbit_s)
         self._last_roi: Dict[str, float] = {}
-        self._roi_busy: set = set()  # cameras whose last image is being encoded
+        self._busy: set = set()  # topics whose last image is being encoded
         self._counts = collections.Counter()
         self._logged: set = set()
         self._header = None
@@ -375,13 +256,15 @@ class LiveView:
         return {"clients": len(self._clients()), "subscribed_channels": len(self._subscribed),
                 "sent": self._counts["sent"] + sum(b.sent for b in boxes),
                 "dropped": self._counts["dropped"] + sum(b.dropped for b in boxes),
-                "errors": self._counts["errors"]}
+                "errors": self._counts["errors"], "depth_skipped": self._counts["depth_skipped"]}
 
-    async def start(self, plane_map=None) -> None:
-        """Listen and advertise the channels (and publish ``plane_map`` if given); DriverError naming
-        the address if it cannot listen."""
+    async def start(self, plane_map=None, cameras: Sequence[str] = ()) -> None:
+        """Listen and advertise the channels, the per-camera ones for ``cameras`` (and those given
+        at construction); publish ``plane_map`` if given. DriverError naming the address if it
+        cannot listen."""
         if plane_map is not None:
             self.publish_map(plane_map)
+        self._cameras.extend(c for c in cameras if c not in self._cameras)
         if self._server is not None:
             return
         fws, opcode, closed_exc = _import_foxglove()
@@ -413,11 +296,8 @@ class LiveView:
         if sockets:
             self.port = int(sockets[0].getsockname()[1])  # the real one when 0 asked for any free port
         self._server = server
-        for topic, schema in ((TOPIC_MAP, MAP_SCHEMA), (TOPIC_POSE, POSE_SCHEMA), (TOPIC_PLANES, PLANES_SCHEMA),
-                              (TOPIC_CMD, CMD_SCHEMA)):
-            await self._add_channel(topic, schema)
-        for cam in self._cameras:
-            await self._add_channel(roi_topic(cam), ROI_SCHEMA)
+        for topic in ms.camera_topics(self._cameras, ms.LIVE_TOPICS):
+            await self._add_channel(topic)
         log.info("live view: Foxglove WebSocket server on %s", self.url)
 
     async def stop(self) -> None:
@@ -441,63 +321,97 @@ class LiveView:
         self._channels.clear()
         self._subscribed.clear()
 
+    def set_depth_budget(self, max_mbit_s: float) -> None:
+        """Cap the depth images sent (all clients together) at ``max_mbit_s``; 0 sends none."""
+        self._depth_budget = ByteBudget(max_mbit_s)
+
     def publish_map(self, plane_map, t: float = 0.0) -> None:
         """Publish the plane map, and keep it for every client that subscribes later (also before start)."""
         if self._server is not None and not self._on_loop(self.publish_map, plane_map, t):
             return
-        self._map, self._map_t, self._map_bytes = plane_map, t, None
-        chan = self._channels.get(TOPIC_MAP)
-        if chan is None or chan not in self._subscribed:
-            return  # encoded when someone subscribes
-        for client in self._clients():
-            sub = client.subscriptions_by_channel.get(chan)
-            if sub is not None:
-                self._send_map(client, sub)
+        self._map = plane_map
+        self._latch(ms.TOPIC_MAP, t, lambda: ms.map_message(plane_map, t))
+
+    def publish_static_transforms(self, t: float, transforms: Sequence[Tuple[str, str, Any]]) -> None:
+        """The fixed transforms (parent, child, 4x4 T_parent_child), e.g. the camera mounts; kept
+        for every client that subscribes later, like the map."""
+        if self._server is not None and not self._on_loop(self.publish_static_transforms, t, transforms):
+            return
+        fixed = list(transforms)
+        self._latch(ms.TOPIC_TF_STATIC, t, lambda: ms.transforms_message(t, fixed))
+
+    def publish_tf(self, t: float, T_map_odom: Sequence[float], T_odom_base: Sequence[float]) -> None:
+        """``map -> odom`` and ``odom -> base_link`` (planar poses) at ``t``."""
+        if self._wanted(ms.TOPIC_TF) and self._on_loop(self.publish_tf, t, T_map_odom, T_odom_base):
+            self._send(ms.TOPIC_TF, t, lambda: ms.odometry_transforms(t, T_map_odom, T_odom_base))
 
     def publish_pose(self, t: float, x: float, y: float, phi: float, cov: Any, quality: Optional[str] = None,
                      reason: str = "") -> None:
         """The fused pose, its covariance and the quality state (localized | degraded | lost) with its reason."""
-        if self._wanted(TOPIC_POSE) and self._on_loop(self.publish_pose, t, x, y, phi, cov, quality, reason):
-            self._send(TOPIC_POSE, t, lambda: pose_message(t, x, y, phi, cov, quality, reason))
+        if self._wanted(ms.TOPIC_POSE) and self._on_loop(self.publish_pose, t, x, y, phi, cov, quality, reason):
+            self._send(ms.TOPIC_POSE, t, lambda: ms.pose_message(t, x, y, phi, cov, quality=quality, reason=reason))
 
     def publish_planes(self, t: float, camera: str, reports: Iterable[Any]) -> None:
-        """Per-plane results of localizing one camera's frame (``PlaneReport``s or their ``to_json()``)."""
-        if self._wanted(TOPIC_PLANES) and self._on_loop(self.publish_planes, t, camera, reports):
-            self._send(TOPIC_PLANES, t, lambda: planes_message(t, camera, reports))
+        """Per-plane results of localizing one camera's frame (``PlaneReport``s or their ``to_json()``),
+        and their walls outlined on ``/plane_fits``."""
+        planes, fits = self._wanted(ms.TOPIC_PLANES), self._wanted(ms.TOPIC_PLANE_FITS) and self._map is not None
+        if not (planes or fits) or not self._on_loop(self.publish_planes, t, camera, reports):
+            return
+        reports = list(reports)
+        if planes:
+            self._send(ms.TOPIC_PLANES, t, lambda: ms.planes_message(t, camera, reports))
+        if fits:
+            plane_map = self._map
+            self._send(ms.TOPIC_PLANE_FITS, t, lambda: ms.plane_fits_message(t, camera, reports, plane_map))
 
     def publish_cmd(self, t: float, vx: float, vy: float, wz: float,
                     wheel_speeds: Optional[Sequence[float]] = None) -> None:
         """The body velocity command (m/s, m/s, rad/s in the robot frame) and optionally the wheel speeds."""
-        if self._wanted(TOPIC_CMD) and self._on_loop(self.publish_cmd, t, vx, vy, wz, wheel_speeds):
-            self._send(TOPIC_CMD, t, lambda: cmd_message(t, vx, vy, wz, wheel_speeds))
+        if self._wanted(ms.TOPIC_CMD) and self._on_loop(self.publish_cmd, t, vx, vy, wz, wheel_speeds):
+            self._send(ms.TOPIC_CMD, t, lambda: ms.cmd_message(t, vx, vy, wz, wheel_speeds))
+
+    def publish_status(self, t: float, status: Mapping[str, Any]) -> None:
+        """The app's status report (what the recording's ``/status`` holds)."""
+        if self._wanted(ms.TOPIC_STATUS) and self._on_loop(self.publish_status, t, status):
+            self._send(ms.TOPIC_STATUS, t, lambda: ms.status_message(t, status))
 
     def publish_roi(self, t: float, camera: str, label: np.ndarray) -> None:
         """The ROI label image of one camera frame (plane index per pixel, negative for none).
 
         At most ``roi_max_hz`` per camera, and one at a time, are encoded, in a worker thread: PNG
-        encoding is the one publish that costs milliseconds on a Nano, and the loop must not pay it.
+        encoding is a publish that costs milliseconds on a Nano, and the loop must not pay it.
         """
-        topic = roi_topic(camera)
-        if topic not in self._channels:
-            if self._server is not None and self._on_loop(self.publish_roi, t, camera, label):
-                self._advertise_later(topic, ROI_SCHEMA)
-            return
-        if not (self._wanted(topic) and self._on_loop(self.publish_roi, t, camera, label)):
+        topic = ms.roi_topic(camera)
+        if not self._ready(topic, self.publish_roi, t, camera, label):
             return
         last = self._last_roi.get(camera)
-        if camera in self._roi_busy or (last is not None and 0.0 <= t - last < self.roi_min_period):
+        if topic in self._busy or (last is not None and 0.0 <= t - last < self.roi_min_period):
             self._counts["roi_skipped"] += 1
             return
         try:
-            lab = np.array(_check_label(label), copy=True)  # the caller may reuse its buffer
+            lab = np.array(ms.check_label(label), copy=True)  # the caller may reuse its buffer
         except ValueError as e:
             self._error(topic, e)
             return
         self._last_roi[camera] = t
-        self._roi_busy.add(camera)
-        build = roi_message  # looked up now: the module's function (tests may replace it)
-        fut = self._loop.run_in_executor(None, lambda: ms.dumps(build(t, camera, lab)))
-        fut.add_done_callback(lambda f: self._roi_encoded(topic, camera, t, f))
+        self._encode_later(topic, t, lambda: ms.dumps(ms.roi_message(t, camera, lab)))
+
+    def publish_depth(self, t: float, frame: DepthFrame) -> None:
+        """A depth frame as a 16UC1 image, every n-th pixel so it is at most ``DEPTH_MAX_WIDTH``
+        wide, within the depth budget, one at a time per camera, encoded in a worker thread."""
+        topic = ms.depth_topic(frame.camera)
+        if not self._ready(topic, self.publish_depth, t, frame):
+            return
+        depth = np.asarray(frame.depth)
+        if depth.ndim != 2:
+            self._error(topic, ValueError(f"depth image must be 2-D, got shape {depth.shape}"))
+            return
+        step = ms.decimation_for(depth.shape[1], DEPTH_MAX_WIDTH)
+        size = ms.depth_message_bytes(-(-depth.shape[1] // step), -(-depth.shape[0] // step))
+        if topic in self._busy or not self._depth_budget.admit(t, size):
+            self._counts["depth_skipped"] += 1
+            return
+        self._encode_later(topic, t, lambda: ms.dumps(ms.encode_depth(frame, step)))
 
     # Private interface  -------------------------------------------------------------------------
 
@@ -518,6 +432,15 @@ class LiveView:
             pass
         return False
 
+    def _ready(self, topic: str, method, *args) -> bool:
+        """For a per-camera channel: True when it is watched and we are on the loop. A camera not
+        named at start gets its channel advertised; its frames before that are not sent."""
+        if topic not in self._channels:
+            if self._server is not None and self._on_loop(method, *args):
+                self._advertise_later(topic)
+            return False
+        return self._wanted(topic) and self._on_loop(method, *args)
+
     def _send(self, topic: str, t: float, build: Callable[[], Dict[str, Any]]) -> bool:
         """Encode once and queue for each subscriber. Nothing is built when nobody listens."""
         if not self._wanted(topic):
@@ -529,8 +452,13 @@ class LiveView:
             return False
         return self._queue(topic, t, payload)
 
-    def _roi_encoded(self, topic: str, camera: str, t: float, fut) -> None:
-        self._roi_busy.discard(camera)
+    def _encode_later(self, topic: str, t: float, encode: Callable[[], bytes]) -> None:
+        self._busy.add(topic)
+        fut = self._loop.run_in_executor(None, encode)
+        fut.add_done_callback(lambda f: self._encoded(topic, t, f))
+
+    def _encoded(self, topic: str, t: float, fut) -> None:
+        self._busy.discard(topic)
         if fut.cancelled():
             return
         if fut.exception() is not None:
@@ -554,8 +482,8 @@ class LiveView:
         return True
 
     def _frame(self, subscription: int, t: float, payload: bytes) -> bytes:
-        ts = max(0, int(round(t * 1e9))) if math.isfinite(t) else 0
-        return self._header.pack(self._opcode, subscription, ts) + payload
+        # the same wall-clock time the recorder logs: a live session and its recording line up
+        return self._header.pack(self._opcode, subscription, ms.wall_clock().ns(t)) + payload
 
     def _clients(self) -> Sequence[Any]:
         return self._server._clients if self._server is not None else ()
@@ -565,7 +493,8 @@ class LiveView:
         box = self._outboxes.get(key)
         if box is None or box.connection is not client.connection:
             self._prune()
-            box = self._outboxes[key] = _Outbox(client.connection, self.client_queue, self._closed_exc)
+            box = self._outboxes[key] = _Outbox(client.connection, self.client_queue, self._closed_exc,
+                                                self.client_bytes)
             box.task = self._loop.create_task(box.run())
         return box
 
@@ -579,38 +508,47 @@ class LiveView:
             if box.task is not None:
                 box.task.cancel()
 
+    def _latch(self, topic: str, t: float, build: Callable[[], Dict[str, Any]]) -> None:
+        """Keep the latest message of a latched channel and send it to its current subscribers."""
+        self._latched[topic] = _Latched(t, build)
+        chan = self._channels.get(topic)
+        if chan is None or chan not in self._subscribed:
+            return  # encoded when someone subscribes
+        for client in self._clients():
+            sub = client.subscriptions_by_channel.get(chan)
+            if sub is not None:
+                self._send_latched(topic, client, sub)
+
     def _on_subscribe(self, client, subscriptions: List[Mapping[str, Any]]) -> None:
-        """A client subscribed: send it the latched map at once if it asked for the map."""
-        chan = self._channels.get(TOPIC_MAP)
-        if chan is None or self._map is None:
-            return
+        """A client subscribed: send it the latched messages of the channels it asked for at once."""
+        by_channel = {self._channels.get(topic): topic for topic in self._latched}
         for sub in subscriptions:
             sub_id = sub.get("id")
-            if sub.get("channelId") == chan and client.subscriptions.get(sub_id) == chan:
-                self._send_map(client, sub_id)
+            topic = by_channel.get(sub.get("channelId"))
+            if topic is not None and client.subscriptions.get(sub_id) == sub.get("channelId"):
+                self._send_latched(topic, client, sub_id)
 
-    def _send_map(self, client, sub_id: int) -> None:
+    def _send_latched(self, topic: str, client, sub_id: int) -> None:
+        latched = self._latched[topic]
         try:
-            if self._map_bytes is None:
-                self._map_bytes = ms.dumps(map_message(self._map, self._map_t))
-            self._outbox(client).push_latched(self._frame(sub_id, self._map_t, self._map_bytes))
+            self._outbox(client).push_latched(sub_id, self._frame(sub_id, latched.t, latched.bytes()))
         except Exception as e:
-            self._error(TOPIC_MAP, e)
+            self._error(topic, e)
 
-    async def _add_channel(self, topic: str, schema) -> None:
-        name, body = schema
+    async def _add_channel(self, topic: str) -> None:
+        name, _ = ms.schema_for(topic)
         self._channels[topic] = await self._server.add_channel({
-            "topic": topic, "encoding": "json", "schemaName": name, "schema": json.dumps(body),
-            "schemaEncoding": "jsonschema"})
+            "topic": topic, "encoding": ms.MESSAGE_ENCODING, "schemaName": name, "schema": ms.schema_text(topic),
+            "schemaEncoding": ms.SCHEMA_ENCODING})
 
-    def _advertise_later(self, topic: str, schema) -> None:
+    def _advertise_later(self, topic: str) -> None:
         """A camera not named at start: advertise its channel; frames before that are not sent."""
         if topic in self._adding or self._server is None:
             return
 
         async def add():
             try:
-                await self._add_channel(topic, schema)
+                await self._add_channel(topic)
             except Exception as e:
                 self._error(topic, e)
 
@@ -651,5 +589,4 @@ def _make_server(fws, live: LiveView, host: str, port: int, name: str):
     return server
 
 
-__all__ = ["LiveView", "NullLiveView", "make_live_view", "live_view_missing", "map_message", "pose_message",
-           "planes_message", "cmd_message", "roi_message", "roi_png", "roi_topic"]
+__all__ = ["LiveView", "NullLiveView", "make_live_view", "live_view_missing"]

@@ -1,21 +1,29 @@
 """Record a run to MCAP files with bounded disk use; never take the robot down with it.
 
-``Recorder`` writes the channels described in ``robot.recording.schema``. It rotates to a new file
+``Recorder`` writes the channels described in ``robot.recording.schema`` (the schema set the live
+view uses too, so one Foxglove layout opens both). It rotates to a new file
 (a *segment*) when one grows past ``max_file_bytes``, deletes its own oldest segments when they
 add up to more than ``max_total_bytes``, and stops recording for good, with one warning and
 ``stopped_reason`` set, when free disk space falls under ``min_free_bytes`` or a write fails
 (ENOSPC, EIO, a filesystem gone read-only). It never raises for disk trouble: recording is a
 diagnostic, driving is the job.
 
-Every segment is a complete recording on its own: it starts with the latest ``/config``
-message again, so a replay or Foxglove can open any one of them.
+Every segment is a complete recording on its own: it starts with the latest ``/config`` and
+``/map`` messages again, so a replay or Foxglove can open any one of them.
+
+Depth images are the one heavy channel (a 848x480 frame is 1.1 MB as a 16UC1 RawImage in
+JSON): ``set_depth_budget`` caps them in Mbit/s, and a frame over the budget is skipped whole
+(counted in ``depth_skipped``), never shrunk, so every recorded frame replays bit for bit. ROI
+label images are recorded at most ``schema.ROI_MAX_HZ`` per camera.
 
 ``NullRecorder`` has the same methods and does nothing: the robot's default.
-``BackgroundRecorder`` moves PNG encoding and file writes off the caller's thread.
+``BackgroundRecorder`` moves image encoding and file writes off the caller's thread.
 
-Log times are the app's monotonic clock: callers pass ``t`` in seconds, the file stores
-nanoseconds. Log times are kept non-decreasing (a late caller is clamped to the latest time), so
-file order, replay order and log-time order are one and the same.
+Log times: callers pass ``t`` in the app's monotonic seconds; the file stores wall-clock
+nanoseconds (``schema.wall_clock()``, whose offset each segment's ``recording`` metadata keeps as
+``clock_offset_ns``), so Foxglove shows when the run happened. Log times are kept non-decreasing
+(a late caller is clamped to the latest time), so file order, replay order and log-time order
+are one and the same.
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
 from robot.base.errors import ConfigError
 from robot.base.samples import DepthFrame
 from robot.recording import schema as ms
+from robot.recording.budget import ByteBudget
 
 log = logging.getLogger(__name__)
 
@@ -183,13 +192,16 @@ class Recorder:
         self._writer = None
         self._file: Optional[_TrackedFile] = None
         self._channels: Dict[str, int] = {}
-        self._schemas: Dict[str, int] = {}
+        self._schemas: Dict[Tuple[str, str], int] = {}  # by (name, text): two image schemas share a name
         self._pending = 0
         self._segment_messages = 0
         self._segment_chunks = 0
         self._last_ns = 0
         self._sequence = 0
-        self._latched: Optional[Tuple[str, bytes]] = None
+        self._latched: Dict[str, bytes] = {}  # latest message of each latched topic
+        self._depth_budget: Optional[ByteBudget] = None  # None: every depth frame
+        self.depth_skipped = 0
+        self._last_roi: Dict[str, float] = {}
         with self._lock:
             self._open_segment()
 
@@ -200,22 +212,54 @@ class Recorder:
         return self._writer is not None
 
     def write_config(self, t: float, robot_config_yaml: str, map_yaml: str,
-                     robot_config_path: Optional[str] = None, map_path: Optional[str] = None) -> bool:
-        """The robot config and map of this run (YAML text). Repeated at the start of each segment."""
-        msg = {"robot_config_yaml": robot_config_yaml, "map_yaml": map_yaml,
-               "robot_config_path": robot_config_path, "map_path": map_path}
+                     robot_config_path: Optional[str] = None, map_path: Optional[str] = None,
+                     effective_config: Optional[Mapping[str, Any]] = None) -> bool:
+        """The robot config and map of this run (YAML text) and the effective config
+        (``robot.config.dump.effective_config_dict``). Repeated at the start of each segment."""
+        msg = ms.config_message(robot_config_yaml, map_yaml, robot_config_path, map_path, effective_config)
         return self._write(ms.TOPIC_CONFIG, t, ms.dumps(msg), latch=True)
 
+    def set_depth_budget(self, max_mbit_s: Optional[float]) -> None:
+        """Cap the depth images at ``max_mbit_s`` (0: none at all; None: no cap)."""
+        self._depth_budget = None if max_mbit_s is None else ByteBudget(max_mbit_s)
+
+    def admit_depth(self, t: float, frame: DepthFrame) -> bool:
+        """Charge the depth budget for this frame at ``t``; False, counted in ``depth_skipped``,
+        when it is spent. ``write_depth`` asks this itself."""
+        depth = frame.depth
+        if self._depth_budget is None or getattr(depth, "ndim", 0) != 2:
+            return True  # no cap; a malformed frame is refused by the encoding, as a bug
+        if self._depth_budget.admit(t, ms.depth_message_bytes(depth.shape[1], depth.shape[0])):
+            return True
+        self.depth_skipped += 1
+        return False
+
     def write_depth(self, t: float, frame: DepthFrame) -> bool:
-        """One depth frame on ``/depth/<camera>`` (16-bit PNG, lossless)."""
-        if not self.active:
-            return False  # skip the PNG encoding when nothing will be written
+        """One depth frame on ``/depth/<camera>`` (16UC1, lossless), unless the depth budget is
+        spent (then False, and ``depth_skipped`` counts it)."""
+        if not self.active or not self.admit_depth(t, frame):
+            return False  # skip the encoding when nothing will be written
+        return self._write_depth(t, frame)
+
+    def _write_depth(self, t: float, frame: DepthFrame) -> bool:
         return self._write(ms.depth_topic(frame.camera), t, ms.dumps(ms.encode_depth(frame)))
 
-    def write_pose(self, t: float, x: float, y: float, phi: float, cov: Any, quality: Any = None,
-                   pose_time: Optional[float] = None, frame_id: str = "map") -> bool:
+    def write_roi(self, t: float, camera: str, label: Any) -> bool:
+        """The ROI label image of one camera frame on ``/roi/<camera>``, at most ``ROI_MAX_HZ``
+        per camera (by ``t``); False when skipped."""
+        if not self.active:
+            return False
+        last = self._last_roi.get(camera)
+        if last is not None and 0.0 <= t - last < 1.0 / ms.ROI_MAX_HZ:
+            return False
+        self._last_roi[camera] = t
+        return self._write(ms.roi_topic(camera), t, ms.dumps(ms.roi_message(t, camera, label)))
+
+    def write_pose(self, t: float, x: float, y: float, phi: float, cov: Any, quality: Optional[str] = None,
+                   reason: str = "", pose_time: Optional[float] = None, frame_id: str = ms.MAP_FRAME) -> bool:
         """A fused pose; ``cov`` is 3x3 over (x, y, phi); ``pose_time`` defaults to ``t``."""
-        msg = ms.pose_message(t if pose_time is None else pose_time, x, y, phi, cov, quality, frame_id)
+        msg = ms.pose_message(t if pose_time is None else pose_time, x, y, phi, cov, quality=quality, reason=reason,
+                              frame_id=frame_id)
         return self._write(ms.TOPIC_POSE, t, ms.dumps(msg))
 
     def write_odometry(self, t: float, message: Mapping[str, Any]) -> bool:
@@ -231,7 +275,8 @@ class Recorder:
         return self.write(ms.TOPIC_STATUS, t, message)
 
     def write(self, topic: str, t: float, message: Mapping[str, Any]) -> bool:
-        """A dict message on one of the JSON topics; its ``t`` defaults to the log time.
+        """A dict message (built by ``robot.recording.schema``) on one of the JSON topics; its ``t``
+        defaults to the log time. ``/map`` is repeated at the start of each segment.
 
         A message missing a required field raises ValueError: that is a bug, not disk trouble.
         """
@@ -240,7 +285,7 @@ class Recorder:
         msg = dict(message)
         msg.setdefault("t", float(t))
         ms.check_required(topic, msg)
-        return self._write(topic, t, ms.dumps(msg))
+        return self._write(topic, t, ms.dumps(msg), latch=topic in ms.LATCHED_TOPICS)
 
     def close(self) -> None:
         """Finish the open segment properly. Safe to call twice."""
@@ -274,10 +319,10 @@ class Recorder:
     def _write(self, topic: str, t: float, data: bytes, latch: bool = False) -> bool:
         with self._lock:
             if latch:
-                self._latched = (topic, data)
+                self._latched[topic] = data
             if self._writer is None:
                 return False
-            log_ns = max(int(round(t * 1e9)), self._last_ns)
+            log_ns = max(ms.wall_clock().ns(t), self._last_ns)
             try:
                 if self._segment_messages > 0 and self._projected_size(len(data)) > self.max_file_bytes:
                     self._rotate()
@@ -297,12 +342,13 @@ class Recorder:
     def _add(self, topic: str, log_ns: int, data: bytes) -> None:
         channel = self._channels.get(topic)
         if channel is None:
-            name, schema = ms.schema_for(topic)
-            schema_id = self._schemas.get(name)
+            name, _ = ms.schema_for(topic)
+            text = ms.schema_text(topic)
+            schema_id = self._schemas.get((name, text))
             if schema_id is None:
                 schema_id = self._writer.register_schema(name=name, encoding=ms.SCHEMA_ENCODING,
-                                                         data=ms.dumps(schema))
-                self._schemas[name] = schema_id
+                                                         data=text.encode("utf-8"))
+                self._schemas[(name, text)] = schema_id
             channel = self._writer.register_channel(topic=topic, message_encoding=ms.MESSAGE_ENCODING,
                                                     schema_id=schema_id)
             self._channels[topic] = channel
@@ -353,9 +399,9 @@ class Recorder:
                 "id": self.recording_id, "segment": str(self._index),
                 "created": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
                 "software": "planeloc-robot " + _software_version(),
+                "clock_offset_ns": str(ms.wall_clock().offset_ns),
                 "python": platform.python_version(), "host": platform.node()})
-            if self._latched is not None:
-                topic, data = self._latched
+            for topic, data in list(self._latched.items()):
                 self._add(topic, self._last_ns, data)
         except OSError as e:
             self._stop(f"write to {path} failed: {e}", failed=True)
@@ -433,14 +479,24 @@ class NullRecorder:
     active = False
 
     def write_config(self, t: float, robot_config_yaml: str, map_yaml: str,
-                     robot_config_path: Optional[str] = None, map_path: Optional[str] = None) -> bool:
+                     robot_config_path: Optional[str] = None, map_path: Optional[str] = None,
+                     effective_config: Optional[Mapping[str, Any]] = None) -> bool:
+        return False
+
+    def set_depth_budget(self, max_mbit_s: Optional[float]) -> None:
+        pass
+
+    def admit_depth(self, t: float, frame: DepthFrame) -> bool:
         return False
 
     def write_depth(self, t: float, frame: DepthFrame) -> bool:
         return False
 
-    def write_pose(self, t: float, x: float, y: float, phi: float, cov: Any, quality: Any = None,
-                   pose_time: Optional[float] = None, frame_id: str = "map") -> bool:
+    def write_roi(self, t: float, camera: str, label: Any) -> bool:
+        return False
+
+    def write_pose(self, t: float, x: float, y: float, phi: float, cov: Any, quality: Optional[str] = None,
+                   reason: str = "", pose_time: Optional[float] = None, frame_id: str = ms.MAP_FRAME) -> bool:
         return False
 
     def write_odometry(self, t: float, message: Mapping[str, Any]) -> bool:
@@ -474,13 +530,17 @@ _STOP = object()
 class BackgroundRecorder:
     """A ``Recorder`` fed through a bounded queue and written by one worker thread.
 
-    The caller's thread (the control loop) only enqueues; PNG encoding (OpenCV releases the GIL)
+    The caller's thread (the control loop) only enqueues; image encoding (base64, ROI PNGs)
     and disk writes happen on the worker. When the queue is full the message is dropped and
     counted in ``dropped``: a slow SD card must delay the recording, never the robot. Messages
-    keep their order. Do not modify a DepthFrame's array after handing it over.
+    keep their order. Do not modify a DepthFrame's or a label image's array after handing it over.
+
+    The depth budget is charged here, on the caller's thread, so a frame over it never takes a
+    place in the queue: the queue (about 10 s of the small channels at their rates) holds at most
+    the few depth frames per second the budget lets through.
     """
 
-    def __init__(self, recorder: Recorder, max_queue: int = 256):
+    def __init__(self, recorder: Recorder, max_queue: int = 2048):
         self.recorder = recorder
         self.dropped = 0
         self._queue: queue.Queue = queue.Queue(maxsize=max_queue)
@@ -498,6 +558,13 @@ class BackgroundRecorder:
     @property
     def files(self) -> List[str]:
         return self.recorder.files
+
+    @property
+    def depth_skipped(self) -> int:
+        return self.recorder.depth_skipped
+
+    def set_depth_budget(self, max_mbit_s: Optional[float]) -> None:
+        self.recorder.set_depth_budget(max_mbit_s)  # before the first write: the worker only reads it
 
     def _submit(self, name: str, *args, **kwargs) -> bool:
         if not self.recorder.active:
@@ -526,7 +593,12 @@ class BackgroundRecorder:
         return self._submit("write_config", *args, **kwargs)
 
     def write_depth(self, t: float, frame: DepthFrame) -> bool:
-        return self._submit("write_depth", t, frame)
+        if not self.recorder.active or not self.recorder.admit_depth(t, frame):
+            return False
+        return self._submit("_write_depth", t, frame)
+
+    def write_roi(self, t: float, camera: str, label: Any) -> bool:
+        return self._submit("write_roi", t, camera, label)
 
     def write_pose(self, *args, **kwargs) -> bool:
         return self._submit("write_pose", *args, **kwargs)

@@ -1,6 +1,7 @@
 """The app in real time on fakes: the firmware emulator on a real pty (the unmodified serial driver
-talks to it) and fake cameras that render what the robot truly sees. Used by ``robotctl sim
---realtime``, ``robotctl teleop --sim``, the tests and the controller benchmark."""
+talks to it) and fake cameras that render what the robot truly sees, built by
+``robot.app.assemble.build_rig("sim", ...)``. Used by ``robotctl sim --realtime``, the tests and
+the controller benchmark."""
 
 from __future__ import annotations
 
@@ -12,8 +13,7 @@ from typing import Iterator, List, Optional
 
 from drivers.camera.sim import SimCamera
 from drivers.chassis.emulator import FirmwareEmulator
-from drivers.chassis.serial_chassis import SerialChassis
-from drivers.sim.world import sample_world
+from robot.app.assemble import build_rig
 from robot.app.controller import AppOptions, RobotApp
 from robot.config import RobotConfig
 from robot.control.path_file import PathPlan
@@ -43,21 +43,14 @@ class SimRig:
 def sim_rig(robot: RobotConfig, plane_map: PlaneMap, start, settings: RealtimeSimSettings = RealtimeSimSettings(),
             options: Optional[AppOptions] = None, **app_kwargs) -> Iterator[SimRig]:
     """Emulator + fake cameras + app, torn down on exit. ``start``: the true initial pose."""
-    radius_error, scene = sample_world(plane_map, start, settings.seed, settings.radius_error_std, settings.clutter)
-    emulator = FirmwareEmulator(robot.chassis, radius_error=radius_error, slip_noise=settings.slip_noise,
-                                seed=settings.seed)
-    emulator.board.pose = tuple(float(v) for v in start)
-    emulator.start()
-    cameras = [SimCamera(robot, c.name, scene, lambda: emulator.pose, fps=settings.fps, decimation=settings.decimation,
-                         seed=settings.seed * 10 + i, cache=settings.frame_cache,
-                         imu_rate=float(c.realsense.gyro_fps) if c.realsense.imu_enabled else 0.0)
-               for i, c in enumerate(robot.cameras)]
-    chassis = SerialChassis(robot.chassis, port=emulator.port)
-    app = RobotApp(robot, plane_map, cameras, chassis, options, **app_kwargs)
+    rig = build_rig("sim", robot, plane_map, start, fps=settings.fps, decimation=settings.decimation,
+                    frame_cache=settings.frame_cache, seed=settings.seed, radius_error_std=settings.radius_error_std,
+                    slip_noise=settings.slip_noise, clutter=settings.clutter)
     try:
-        yield SimRig(app, emulator, cameras)
+        app = RobotApp(robot, plane_map, rig.cameras, rig.chassis, options, **app_kwargs)
+        yield SimRig(app, rig.emulator, rig.cameras)  # type: ignore[arg-type]
     finally:
-        emulator.close()
+        rig.close()
 
 
 def run_realtime(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, args) -> int:
@@ -83,7 +76,18 @@ def run_realtime(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, args) 
             print(f"target {reached + 1}: ({wp.x:.2f}, {wp.y:.2f}) reached, true error {errors[-1][1] * 1e3:.1f} mm; "
                   f"{app.status_line()}", flush=True)
 
+    async def main() -> int:
+        kidnap = getattr(args, "kidnap_at", None)
+        if kidnap:
+            t_k, x_k, y_k, phi_k = kidnap
+            asyncio.get_running_loop().call_later(t_k, kidnapped, x_k, y_k, phi_k)
+        return await rig.app.run()
+
+    def kidnapped(x: float, y: float, phi: float) -> None:
+        print(f"kidnap: the robot is carried to ({x:.2f}, {y:.2f}, {math.degrees(phi):.0f} deg)", flush=True)
+        rig.emulator.teleport(x, y, phi)
+
     with sim_rig(robot, plane_map, start, settings, options, plan=plan, recorder=recorder, on_tick=on_tick) as rig:
-        rc = asyncio.run(rig.app.run())
+        rc = asyncio.run(main())
     print(f"stopped: {rig.app.exit_reason}; {len(errors)}/{len(plan.waypoints)} targets reached")
     return rc if len(errors) == len(plan.waypoints) or rig.app.exit_reason.startswith("signal") else 1

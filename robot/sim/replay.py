@@ -8,7 +8,14 @@ RNG is seeded by the frame number), so the fused poses must agree with the recor
 rounding. A difference means the code or the config changed since the recording, which is what
 a desk investigation of a field problem wants to see.
 
-The robot config and the map come from the recording itself unless overridden.
+A frame the recorder skipped (over its depth bandwidth budget) cannot be localized again; its
+recorded plane measurements are fused instead, so the fusion still replays exactly and the
+report counts how many localizations were redone (``relocalized``) and how many were taken
+from the record (``from_recorded_planes``).
+
+The robot config and the map come from the recording itself unless overridden: the effective
+config the run used (defaults as they were then), or for an older recording the YAML text it
+loaded, read with today's defaults.
 """
 
 from __future__ import annotations
@@ -25,8 +32,9 @@ from drivers.chassis.encoders import quantisation_variance
 from robot.base.errors import InputError
 from robot.base.samples import DepthFrame, WheelOdometry
 from robot.config import RobotConfig, load_robot_config
+from robot.config.calibration import calibrated_frame
 from robot.control.core import ControllerCore
-from robot.localization.localizer import Localizer
+from robot.localization.localizer import LocalizationResult, Localizer
 from robot.maps.plane_map import PlaneMap, load_plane_map
 from robot.recording import schema as ms
 from robot.recording.reader import RecordingReader
@@ -39,7 +47,9 @@ class ReplayReport:
     max_position_diff: float = 0.0  # m, replayed vs recorded fused pose
     max_heading_diff: float = 0.0  # rad
     fit_mismatches: List[str] = field(default_factory=list)  # localizations whose accepted planes differ
-    missing_frames: int = 0
+    missing_frames: int = 0  # localized frames with neither the frame nor its plane measurements recorded
+    relocalized: int = 0  # localizations redone from the recorded frame
+    from_recorded_planes: int = 0  # frames not recorded: their recorded plane measurements fused
     odometry: int = 0
     truncated: List[str] = field(default_factory=list)
 
@@ -51,6 +61,7 @@ class ReplayReport:
         return {"localizations": self.localizations, "odometry": self.odometry, "poses_compared": self.poses_compared,
                 "max_position_diff_m": self.max_position_diff, "max_heading_diff_rad": self.max_heading_diff,
                 "fit_mismatches": self.fit_mismatches, "missing_frames": self.missing_frames,
+                "relocalized": self.relocalized, "from_recorded_planes": self.from_recorded_planes,
                 "truncated_segments": self.truncated, "identical": self.ok()}
 
 
@@ -58,12 +69,24 @@ def _config_from_recording(reader: RecordingReader) -> Tuple[RobotConfig, PlaneM
     cfg = reader.config()
     if cfg is None:
         raise InputError(f"{reader.paths[0]}: the recording has no /config message; give --robot and --map")
+    robot = reader.robot_config()
     with tempfile.TemporaryDirectory() as d:
         robot_path, map_path = Path(d) / "robot.yaml", Path(d) / "map.yaml"
-        robot_path.write_text(cfg["robot_config_yaml"], encoding="utf-8")
+        if robot is None:
+            robot_path.write_text(cfg["robot_config_yaml"], encoding="utf-8")
+            robot = load_robot_config(robot_path)
         map_path.write_text(cfg["map_yaml"], encoding="utf-8")
-        robot = load_robot_config(robot_path)
         return robot, load_plane_map(map_path)
+
+
+def _recorded_result(path, msg: dict) -> LocalizationResult:
+    """The fusion's input of a localization whose frame was not recorded: its recorded measurements."""
+    try:
+        measurements = [ms.measurement_from_json(m) for m in msg["measurements"]]
+    except (TypeError, ValueError) as e:
+        raise InputError(f"{path}: /planes of {msg.get('camera')} frame {msg.get('frame_number')}: {e}") from None
+    return LocalizationResult(x=math.nan, y=math.nan, phi=math.nan, cov=np.full((3, 3), np.nan),
+                              status=str(msg.get("status", "")), unobservable=[], planes=[], measurements=measurements)
 
 
 def replay(path, robot: Optional[RobotConfig] = None, plane_map: Optional[PlaneMap] = None) -> ReplayReport:
@@ -106,11 +129,17 @@ def replay(path, robot: Optional[RobotConfig] = None, plane_map: Optional[PlaneM
             report.odometry += 1
         elif topic == ms.TOPIC_PLANES:
             frame = frames.get((msg["camera"], int(msg["frame_number"])))
-            if frame is None:
+            if frame is not None:
+                cov = np.array(msg["coarse_cov"], float).reshape(3, 3)
+                frame = calibrated_frame(frame, robot.camera(frame.camera).depth_scale)  # as the app did
+                result = localizer.localize([frame], tuple(msg["coarse"]), cov, msg.get("method", "joint"))
+                report.relocalized += 1
+            elif "measurements" in msg:
+                result = _recorded_result(reader.paths[0], msg)
+                report.from_recorded_planes += 1
+            else:
                 report.missing_frames += 1
                 continue
-            cov = np.array(msg["coarse_cov"], float).reshape(3, 3)
-            result = localizer.localize([frame], tuple(msg["coarse"]), cov, msg.get("method", "joint"))
             fused = core.on_localization(result, msg["t"], msg["camera"])
             report.localizations += 1
             if sorted(fused.accepted) != sorted(msg.get("accepted", [])):

@@ -18,17 +18,25 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from drivers.chassis.base import LinkState
 from drivers.chassis.loopback import LoopbackChassis
 from drivers.sim.world import SimWorld, WorldSettings
-from robot.base.errors import ConfigError
+from robot.base.errors import ConfigError, DriverError
+from robot.base.frames import FrameCheck
+from robot.base.geometry import wrap_angle
 from robot.config import RobotConfig
+from robot.config.calibration import calibrated_frame
 from robot.control.core import ControllerCore
 from robot.control.path_file import PathPlan
 from robot.control.trajectory import ARRIVED, DONE, TrajectoryController
+from robot.fusion.calibration_filter import CalibrationFilter
 from robot.localization.localizer import Localizer
+from robot.localization.relocalize import Relocalizer
 from robot.maps.plane_map import PlaneMap
+from robot.sim.faults import FaultPlan, FaultyLine
 
 _US = 1_000_000
+CONNECT_ATTEMPTS = 100  # handshakes tried at the start before the run is called failed
 
 
 @dataclass(frozen=True)
@@ -41,6 +49,12 @@ class RunSettings:
     initial_std: Tuple[float, float] = (0.005, math.radians(0.5))  # placement std at the start (m, rad)
     trace_rate: float = 10.0  # Hz, trajectory samples kept for plots
     world: WorldSettings = field(default_factory=WorldSettings)
+    online_calibration: bool = False  # estimate depth scales, mounts and wheel radii while driving (fusion.calibration_filter)
+    # (t, x, y, phi): at simulated time t the robot is carried to (x, y, phi) without its wheels
+    # turning (the kidnapped robot).
+    kidnap_at: Optional[Tuple[float, float, float, float]] = None
+    known_start: bool = True  # False: the robot starts without a pose and must relocalize
+    faults: Optional[FaultPlan] = None  # host stalls, serial line faults, bad frames (robot.sim.faults)
 
 
 @dataclass
@@ -76,6 +90,8 @@ class RunResult:
     localize_ms: List[float]
     render_ms: List[float]
     nees: List[float]  # normalized estimation error squared of the fused pose at each trace sample
+    commands: List[Tuple[float, float, float, float, bool]] = field(default_factory=list)  # per tick: t, vx, vy, wz, sent
+    calibration: Optional[Dict[str, object]] = None  # the online calibration at the end: names, mean, cov, observed
 
     def to_json(self) -> Dict[str, object]:
         return {"vision": self.vision, "seed": self.seed, "finished": self.finished, "reason": self.reason,
@@ -102,95 +118,240 @@ class DwellWatcher:
         return None
 
 
-def run_path(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, settings: RunSettings) -> RunResult:
-    """Drive ``plan`` once in the simulated world; the start pose is the plan's (exactly)."""
+def run_path(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, settings: RunSettings, tap=None) -> RunResult:
+    """Drive ``plan`` once in the simulated world; the start pose is the plan's (exactly).
+
+    ``tap`` (optional) sees what the core sees: ``on_odometry(odo)``, ``on_capture(frames, result)``
+    and ``on_fused(result, t_capture, report)`` (the calibration routine collects its data so)."""
     if plan.start is None:
         raise ConfigError(f"{plan.source}: the simulation needs a 'start' pose in the path file")
     wall0 = time.perf_counter()
-    start = (plan.start.x, plan.start.y, plan.start.heading)
-    world = SimWorld(robot, plane_map, start, settings.world)
-    chassis = LoopbackChassis(world.board, robot.chassis.ticks_per_rev, robot.chassis.max_wheel_speed)
-    chassis.connect()
-    core = ControllerCore(robot, vision=settings.vision, t_start=0.0)
-    sp, sa = settings.initial_std
-    core.set_pose(0.0, *start, np.diag([sp * sp, sp * sp, sa * sa]))
-    core.set_chassis_link(True)
-    core.follow(plan)
-    localizer = Localizer(robot, plane_map) if settings.vision else None
+    # Put the robot at the plan's start in the simulated world and give the plan to the core.
+    run = _PathRun(robot, plane_map, plan, settings)
+    run.tap = tap
+    # Play the events on the simulated clock until the path ends, fails or runs out of time.
+    run.drive()
+    # Stop the wheels and collect what the run measured.
+    run.chassis.stop()
+    return run.result(time.perf_counter() - wall0)
 
-    control_us = int(round(_US / robot.control.rate))
-    vision_us = int(round(_US / settings.vision_rate)) if settings.vision else None
-    latency_us = int(round(settings.latency * _US))
-    trace_us = int(round(_US / settings.trace_rate))
-    end_us = int(settings.max_time * _US)
-    # (time, order, kind): order breaks ties so fusion precedes the control tick at the same instant
-    events: List[Tuple[int, int, str, object]] = [(control_us, 2, "control", None), (0, 3, "trace", None)]
-    if vision_us is not None:
-        events.append((vision_us // 2, 1, "capture", None))
-    heapq.heapify(events)
-    truth_trace: List[Tuple[float, ...]] = []
-    est_trace: List[Tuple[float, ...]] = []
-    nees: List[float] = []
-    targets: List[TargetResult] = []
-    localize_ms: List[float] = []
-    render_ms: List[float] = []
-    dwell = DwellWatcher()
-    reason = f"not finished within {settings.max_time:.0f} s of simulated time"
-    finished = False
-    now_us = 0
-    while events:
-        t_us, order, kind, payload = heapq.heappop(events)
-        if t_us > end_us:
-            break
-        if t_us > now_us:
-            world.step((t_us - now_us) / _US)
-            now_us = t_us
-        t = now_us / _US
-        for odo in chassis.poll():
-            core.on_odometry(odo, chassis.odometry.speed_variance(odo.dt))
-        if kind == "capture":
-            r0 = time.perf_counter()
-            frames = [world.render(cam.name, t) for cam in robot.cameras]
-            render_ms.append((time.perf_counter() - r0) * 1e3)
-            (x, y, phi), P = core.coarse_pose(t)
-            result = localizer.localize(frames, (x, y, phi), P, method=settings.method)
-            localize_ms.append(result.ms)
-            heapq.heappush(events, (now_us + latency_us, 0, "fuse", (result, t)))
-            heapq.heappush(events, (now_us + vision_us, 1, "capture", None))
-        elif kind == "fuse":
-            result, t_capture = payload
-            core.on_localization(result, t_capture)
-        elif kind == "trace":
-            truth = world.truth
-            (x, y, phi), P = core.pose(t)
-            truth_trace.append((t, *truth))
-            est_trace.append((t, x, y, phi))
-            e = np.array([x - truth[0], y - truth[1], math.remainder(phi - truth[2], 2 * math.pi)])
+
+class _PathRun:
+    """The state of one run_path: the simulated world, the core, and the events between them on a
+    clock of integer microseconds. Each kind of event has its handler."""
+
+    # Tie-breaking order at the same instant: fusion precedes the control tick.
+    _ORDER = {"fuse": 0, "capture": 1, "control": 2, "trace": 3, "kidnap": 4}
+
+    def __init__(self, robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, settings: RunSettings) -> None:
+        self.robot, self.plan, self.settings = robot, plan, settings
+        start = (plan.start.x, plan.start.y, plan.start.heading)
+        self.world = SimWorld(robot, plane_map, start, settings.world)
+        self.faults = settings.faults
+        board = self.world.board if self.faults is None else FaultyLine(self.world.board, self.faults, lambda: self.now_us / _US)
+        chassis = LoopbackChassis(board, robot.chassis)
+        self.now_us = 0
+        for attempt in range(CONNECT_ATTEMPTS):  # a faulty line may garble the first handshakes, as the app retries
             try:
-                nees.append(float(e @ np.linalg.solve(P, e)))
-            except np.linalg.LinAlgError:
-                pass
-            heapq.heappush(events, (now_us + trace_us, 3, "trace", None))
-        elif kind == "control":
-            out = core.control_step(t)
-            if out.wheels is not None:
-                chassis.send_wheel_speeds(out.wheels)
-            state = core.trajectory.state
-            reached = dwell.finished_dwell(core.trajectory)
-            if reached is not None:
-                wp = plan.waypoints[reached]
-                (x, y, phi), _ = core.pose(t)
-                targets.append(TargetResult(reached, (wp.x, wp.y), world.truth, (x, y, phi), t))
-            if core.finished:
-                finished, reason = True, "path complete"
+                chassis.connect_now()
                 break
-            if state in ("aborted", "error"):
-                reason = f"trajectory {state}: {out.reason}"
-                break
-            heapq.heappush(events, (now_us + control_us, 2, "control", None))
-    chassis.stop()
-    counters = dict(core.counters)
-    counters["implausible_reports"] = chassis.odometry.implausible
-    return RunResult(settings.vision, settings.world.seed, targets, finished, reason, now_us / _US,
-                     time.perf_counter() - wall0, np.array(truth_trace), np.array(est_trace), counters,
-                     localize_ms, render_ms, nees)
+            except DriverError:
+                if chassis.link_state is LinkState.FAULT or attempt == CONNECT_ATTEMPTS - 1:
+                    raise
+        self.chassis = chassis
+        self._odometry = chassis.odometry_queue()  # read like the app reads it: merged, never dropped, when behind
+        self._reconnects = 0
+        self.frame_check = FrameCheck(robot.health.frame_max_ahead, robot.health.frame_max_age)
+        self.commands: List[Tuple[float, float, float, float, bool]] = []
+        calibration = CalibrationFilter(robot) if settings.online_calibration and settings.vision else None
+        self.core = ControllerCore(robot, vision=settings.vision, t_start=0.0, plane_map=plane_map,
+                                   calibration=calibration)
+        self.tap = None
+        sp, sa = settings.initial_std
+        if settings.known_start:
+            self.core.set_pose(0.0, *start, np.diag([sp * sp, sp * sp, sa * sa]))
+        else:
+            self.core.recovery.start_without_pose(0.0)
+        self.core.set_chassis_link(True)
+        self.core.follow(plan)
+        self.localizer = Localizer(robot, plane_map) if settings.vision else None
+        self.plane_map = plane_map
+        self._relocalizer: Optional[Relocalizer] = None
+        self.relocalizations: List[Tuple[float, str]] = []  # (t, verdict)
+        self.recovery_log: List[Tuple[float, str]] = []  # (t, recovery state) at every change
+
+        self.control_us = int(round(_US / robot.control.rate))
+        # Frames are rendered for the protective stop even without vision fusion (it needs fresh
+        # depth to let the robot move at all), at the vision rate either way.
+        self.vision_us = int(round(_US / settings.vision_rate)) if (settings.vision or robot.safety.enabled) else 0
+        self.latency_us = int(round(settings.latency * _US))
+        self.trace_us = int(round(_US / settings.trace_rate))
+        self.end_us = int(settings.max_time * _US)
+        self.events: List[Tuple[int, int, str, object]] = []  # (time, order, kind, payload), a heap
+        self.now_us = 0
+        self._schedule_at(self.control_us, "control")
+        self._schedule_at(0, "trace")
+        if self.vision_us:
+            self._schedule_at(self.vision_us // 2, "capture")
+        if settings.kidnap_at is not None:
+            self._schedule_at(int(round(settings.kidnap_at[0] * _US)), "kidnap", tuple(settings.kidnap_at[1:]))
+
+        self.truth_trace: List[Tuple[float, ...]] = []
+        self.est_trace: List[Tuple[float, ...]] = []
+        self.nees: List[float] = []
+        self.targets: List[TargetResult] = []
+        self.localize_ms: List[float] = []
+        self.render_ms: List[float] = []
+        self.dwell = DwellWatcher()
+        self.finished = False
+        self.reason = f"not finished within {settings.max_time:.0f} s of simulated time"
+
+    def drive(self) -> None:
+        handlers = {"capture": self._capture, "fuse": self._fuse, "trace": self._trace, "control": self._control,
+                    "kidnap": self._kidnap}
+        while self.events:
+            t_us, _, kind, payload = heapq.heappop(self.events)
+            if t_us > self.end_us:
+                return
+            resume = self._frozen_until(t_us)
+            if resume is not None and kind in ("capture", "fuse", "control", "trace"):
+                # The event loop is frozen: what falls due runs when it thaws. The port's reader
+                # thread still reads and stamps reports (at each trace instant here), but nothing
+                # consumes them, and a frozen host reports no estimate to trace.
+                if kind == "trace":
+                    self._advance_to(t_us)
+                    self._schedule_at(t_us + self.trace_us, kind, payload)
+                else:
+                    self._schedule_at(resume, kind, payload)
+                continue
+            self._advance_to(t_us)
+            if not handlers[kind](self.now_us / _US, payload):
+                return
+
+    def result(self, wall_time: float) -> RunResult:
+        counters = dict(self.core.counters)
+        counters["implausible_reports"] = self.chassis.encoders.implausible
+        counters["frames_refused"] = self.frame_check.total
+        for key in ("odometry_coalesced", "reconnects", "link_losses"):
+            counters[key] = int(self.chassis.stats.get(key, 0) or 0)
+        cal = self.core.calibration
+        calibration = None if cal is None else {"names": list(cal.names), "mean": cal.mean.tolist(),
+                                                 "cov": cal.cov.tolist(), "observed": cal.observed().tolist()}
+        return RunResult(self.settings.vision, self.settings.world.seed, self.targets, self.finished, self.reason,
+                         self.now_us / _US, wall_time, np.array(self.truth_trace), np.array(self.est_trace), counters,
+                         self.localize_ms, self.render_ms, self.nees, self.commands, calibration)
+
+    def _frozen_until(self, t_us: int) -> Optional[int]:
+        """While the host is frozen at ``t_us``: the microsecond it runs again; else None."""
+        end = self.faults.frozen_until(t_us / _US) if self.faults is not None else None
+        return None if end is None else max(t_us + 1, int(round(end * _US)))
+
+    def _schedule_at(self, t_us: int, kind: str, payload: object = None) -> None:
+        heapq.heappush(self.events, (t_us, self._ORDER[kind], kind, payload))
+
+    def _advance_to(self, t_us: int) -> None:
+        """Move the world on to ``t_us`` and feed the core the wheel odometry the board sent meanwhile."""
+        if t_us > self.now_us:
+            self.world.step((t_us - self.now_us) / _US)
+            self.now_us = t_us
+        self.chassis.poll()
+        if self._frozen_until(t_us) is not None:
+            return  # the queue fills (and merges) while the loop is frozen
+        while not self._odometry.empty():
+            odo = self._odometry.get_nowait()
+            self.core.on_odometry(odo, self.chassis.encoders.speed_variance(odo.dt))
+            if self.tap is not None:
+                self.tap.on_odometry(odo)
+
+    def _capture(self, t: float, _payload: object) -> bool:
+        """Render every camera at the true pose and localize; the result is fused ``latency`` later."""
+        r0 = time.perf_counter()
+        frames = [calibrated_frame(self.world.render(cam.name, t), cam.depth_scale) for cam in self.robot.cameras]
+        self.render_ms.append((time.perf_counter() - r0) * 1e3)
+        if self.faults is not None:
+            frames = [self.faults.frame(f, t) for f in frames]
+        frames = [f for f in frames if self.frame_check.admit(f, t)]  # a bad frame is counted, never used
+        if not frames:
+            self._schedule_at(self.now_us + self.vision_us, "capture")
+            return True
+        pose, P = self.core.coarse_pose(t) if self.core.initialized else (None, None)
+        for f in frames:  # the protective stop sees every frame, with or without vision fusion
+            self.core.safety.update_scan(f.camera, t, f.depth_m(), f.K, pose)
+        if self.localizer is not None and self.core.relocalization_due(t):
+            self._relocalize(t, frames)
+        if self.localizer is not None and self.core.initialized:
+            pose, P = self.core.coarse_pose(t)
+            result = self.localizer.localize(frames, pose, P, method=self.settings.method)
+            self.localize_ms.append(result.ms)
+            if self.tap is not None:
+                self.tap.on_capture(frames, result)
+            self._schedule_at(self.now_us + self.latency_us, "fuse", (result, t))
+        self._schedule_at(self.now_us + self.vision_us, "capture")
+        return True
+
+    def _relocalize(self, t: float, frames) -> None:
+        """Global relocalization on these frames (no prior); a unique verdict sets the pose."""
+        if self._relocalizer is None:
+            self._relocalizer = Relocalizer(self.robot, self.plane_map, self.localizer)
+        res = self._relocalizer.relocalize(frames)
+        self.relocalizations.append((t, res.verdict))
+        if res.verdict == "unique":
+            h = res.hypotheses[0]
+            self.core.set_pose(t, h.x, h.y, h.phi, np.asarray(h.cov))
+        self.core.recovery.on_verdict(t, res.verdict, [h.to_json() for h in res.hypotheses[:8]], res.reason)
+
+    def _kidnap(self, _t: float, payload: object) -> bool:
+        self.world.board.pose = tuple(float(v) for v in payload)  # type: ignore[assignment]
+        return True
+
+    def _fuse(self, _t: float, payload: object) -> bool:
+        result, t_capture = payload
+        report = self.core.on_localization(result, t_capture)
+        if self.tap is not None:
+            self.tap.on_fused(result, t_capture, report)
+        return True
+
+    def _trace(self, t: float, _payload: object) -> bool:
+        """Sample the true and the fused pose, and the fused pose's NEES."""
+        truth = self.world.truth
+        if not self.core.initialized:  # no pose yet (relocalizing from nothing): nothing to compare
+            self._schedule_at(self.now_us + self.trace_us, "trace")
+            return True
+        (x, y, phi), P = self.core.pose(t)
+        self.truth_trace.append((t, *truth))
+        self.est_trace.append((t, x, y, phi))
+        e = np.array([x - truth[0], y - truth[1], wrap_angle(phi - truth[2])])
+        try:
+            self.nees.append(float(e @ np.linalg.solve(P, e)))
+        except np.linalg.LinAlgError:
+            pass
+        self._schedule_at(self.now_us + self.trace_us, "trace")
+        return True
+
+    def _control(self, t: float, _payload: object) -> bool:
+        """One control tick; records the target whose dwell it ends. False once the path is over."""
+        link_ok = self.chassis.link_state is LinkState.READY
+        self.core.set_chassis_link(link_ok, "" if link_ok else f"chassis link {self.chassis.link_state.value}")
+        reconnects = int(self.chassis.stats.get("reconnects", 0) or 0)
+        if reconnects != self._reconnects:  # a new session came up between two ticks
+            self._reconnects = reconnects
+            self.core.note_fault(t, "the motor board reconnected")
+        out = self.core.control_step(t)
+        if not self.recovery_log or self.recovery_log[-1][1] != self.core.recovery.state:
+            self.recovery_log.append((t, self.core.recovery.state))
+        sent = out.wheels is not None and self.chassis.send_wheel_speeds(out.wheels)
+        self.commands.append((t, out.command.vx, out.command.vy, out.command.wz, bool(sent)))
+        state = self.core.trajectory.state
+        reached = self.dwell.finished_dwell(self.core.trajectory)
+        if reached is not None:
+            wp = self.plan.waypoints[reached]
+            (x, y, phi), _ = self.core.pose(t)
+            self.targets.append(TargetResult(reached, (wp.x, wp.y), self.world.truth, (x, y, phi), t))
+        if self.core.finished:
+            self.finished, self.reason = True, "path complete"
+            return False
+        if state in ("aborted", "error"):
+            self.reason = f"trajectory {state}: {out.reason}"
+            return False
+        self._schedule_at(self.now_us + self.control_us, "control")
+        return True

@@ -1,0 +1,43 @@
+"""``robotctl relocalize``: where the robot is, from depth snapshots and the map alone (no coarse pose)."""
+
+from __future__ import annotations
+
+import math
+
+from robot.cli.common import add_robot_map_args, load_robot_and_map, print_json
+
+
+def register(sub) -> None:
+    p = sub.add_parser("relocalize", help="global relocalization from depth snapshots (.npz), no coarse pose")
+    add_robot_map_args(p)
+    p.add_argument("--region", nargs=4, type=float, metavar=("X0", "Y0", "X1", "Y1"),
+                   help="only consider poses inside this box of the map (m)")
+    p.add_argument("--json", action="store_true")
+    p.add_argument("snapshots", nargs="+", help="one .npz per camera, taken at the same instant")
+    p.set_defaults(func=cmd_relocalize)
+
+
+def cmd_relocalize(args) -> int:
+    from robot.base.errors import InputError
+    from robot.localization.relocalize import NONE, Relocalizer
+    from robot.recording.snapshot import load_snapshot
+
+    robot, plane_map = load_robot_and_map(args)
+    frames = [load_snapshot(s) for s in args.snapshots]
+    cams = [f.camera for f in frames]
+    if len(set(cams)) != len(cams):
+        raise InputError(f"two snapshots from the same camera ({', '.join(cams)}): give one per camera")
+    if args.region is not None and not all(math.isfinite(v) for v in args.region):
+        raise InputError("--region: the four values must be finite numbers")
+    res = Relocalizer(robot, plane_map).relocalize(frames, region=args.region)
+    if args.json:
+        print_json(res.to_json())
+    else:
+        print(f"verdict: {res.verdict}" + (f" ({res.reason})" if res.reason else "") + f"  [{res.ms:.0f} ms, "
+              f"{res.walls_seen} walls in view]")
+        for i, h in enumerate(res.hypotheses):
+            sx, sy, sp = (math.sqrt(max(h.cov[k][k], 0.0)) for k in range(3))
+            print(f"  {i + 1}. x={h.x:.4f} y={h.y:.4f} phi={h.phi:.4f} rad  std {sx * 1e3:.1f}/{sy * 1e3:.1f} mm "
+                  f"{math.degrees(sp):.2f} deg  score {h.score:.1f}  support {h.support:.0%}  walls: "
+                  + ", ".join(h.planes[:6]))
+    return 1 if res.verdict == NONE else 0

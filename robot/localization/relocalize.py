@@ -1,0 +1,600 @@
+"""Global relocalization: where the robot is from its depth frames and the plane map alone.
+
+No coarse pose. The map's walls are few, large and exactly known, so the search is over wall
+correspondences rather than over poses:
+
+1. **Walls in each frame, without a prior.** Every depth frame is back-projected into the robot
+   frame (the mounts are known, the floor is z = 0). Walls are vertical, so their points project
+   onto lines of the floor plan: sequential RANSAC on the projected points finds each line, a
+   least-squares refit gives the wall's normal ``n_r`` (towards the camera) and offset ``d_r``
+   (``n_r . p + d_r = 0`` in the robot frame) and the span its points cover.
+2. **Hypotheses from pairs.** Two observed walls that are not parallel, matched to two map walls
+   whose normals make the same angle, fix the pose: the heading turns ``n_r`` into the map's
+   ``n_g``, and the position solves ``n_g,a . t = d_r,i - d_g,a`` for both walls. Map pairs are
+   only formed between walls close enough to be seen together (the spatial index), which keeps
+   the search linear in the map size. A hypothesis survives only if the pose lies on the
+   observable side of both walls, inside the map (or the region asked for), and the observed
+   spans fall on the map walls' polygons.
+3. **Clusters.** Hypotheses within a few centimetres and a degree are merged; the most supported
+   are verified.
+4. **Verification by prediction.** From each candidate pose, the ROI machinery predicts which map
+   plane every pixel of a coarse grid should see and at what depth. The measured depth scores
+   each pixel with a robust log-likelihood: agreement within the depth noise is good, a point in
+   front of the predicted wall is clutter (a small penalty), and a point *behind* a wall the
+   candidate says is there is free-space evidence against it (a large penalty).
+5. **Refinement and verdict.** The best candidates are refined by the normal localizer and scored
+   again. The verdict is ``unique`` when the best beats every other by at least
+   ``UNIQUE_MARGIN`` (a log-likelihood difference, in nats, after scaling down for correlated
+   pixels), ``ambiguous`` when several are within that margin (all of them are returned: a
+   square room, identical offices), and ``none`` when nothing is supported.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from robot.base.errors import InputError
+from robot.base.geometry import pose_to_T_ground_robot, wrap_angle
+from robot.base.samples import DepthFrame
+from robot.config import CameraConfig, RobotConfig
+from robot.localization.localizer import Localizer, coarse_covariance
+from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
+from robot.maps.plane_index import PlaneIndex
+from robot.maps.plane_map import PlaneMap
+
+UNIQUE = "unique"
+AMBIGUOUS = "ambiguous"
+NONE = "none"
+
+UNIQUE_MARGIN = 12.0  # nats between the best and the runner-up for a unique verdict
+PIXEL_CORRELATION = 4.0  # the grid's pixels are not independent: log-likelihoods are divided by this
+MIN_SUPPORT = 0.35  # a hypothesis must explain this share of the scored wall pixels
+UNIQUE_SUPPORT = 0.8  # and a unique verdict this share
+UNIQUE_SEE_THROUGH = 0.03  # a unique pose sees through at most this share of its predicted wall pixels
+NOTHING_PREDICTED = 0.0  # log-likelihood ratio of a valid pixel where the map predicts no wall
+IN_WEIGHT = 0.9  # share of a predicted wall's pixels expected on it (the rest: clutter in front)
+SEE_THROUGH = -8.0  # log-likelihood ratio of a point behind a wall the pose predicts
+ANGLE_TOL = math.radians(3.0)  # matching the angle between two walls
+MIN_PAIR_ANGLE = math.radians(25.0)  # walls closer to parallel than this do not fix a position
+CLUSTER_XY = 0.15  # m: pair solutions scatter by centimetres; the refinement does the rest
+CLUSTER_PHI = math.radians(4.0)
+SCORE_STRIDE = 16  # pixels between scored grid points at 848x480
+COARSE_STRIDE = 32  # the same for the first, coarse verification of every cluster
+MAX_VERIFY = 400  # clusters verified by prediction (all of them in a building floor)
+REFINE_SLACK = 10.0  # nats a refined pose may score below its start and still be taken (scoring noise)
+MAX_REFINE = 24  # verified candidates refined by the localizer (those within reach of the best)
+
+
+@dataclass
+class ObservedWall:
+    camera: str
+    n_r: np.ndarray  # (2,) unit normal in the robot frame, towards the camera
+    d_r: float  # n_r . p + d_r = 0 for points p (x, y) of the wall, robot frame
+    span: Tuple[np.ndarray, np.ndarray]  # the two ends (x, y) of its points along the wall, robot frame
+    points: int
+
+
+@dataclass
+class Hypothesis:
+    x: float
+    y: float
+    phi: float
+    cov: np.ndarray
+    score: float  # log-likelihood (nats, correlation-scaled) of the frames given this pose
+    support: float  # share of scored wall pixels that agree
+    planes: List[str] = field(default_factory=list)  # map walls that support it
+    refined: bool = False
+    status: str = ""  # the normal localizer's status after refinement
+    see_through: float = 0.0  # share of scored pixels measured behind a wall this pose predicts
+
+    def to_json(self) -> Dict:
+        return {"x": self.x, "y": self.y, "phi": self.phi, "cov": np.asarray(self.cov).tolist(),
+                "score": self.score, "support": self.support, "planes": list(self.planes),
+                "refined": self.refined, "status": self.status, "see_through": self.see_through}
+
+
+@dataclass
+class RelocalizationResult:
+    verdict: str
+    hypotheses: List[Hypothesis]
+    reason: str
+    ms: float
+    walls_seen: int
+
+    def to_json(self) -> Dict:
+        return {"verdict": self.verdict, "hypotheses": [h.to_json() for h in self.hypotheses], "reason": self.reason,
+                "ms": self.ms, "walls_seen": self.walls_seen}
+
+
+Pose = Tuple[float, float, float]
+View = Tuple[Sequence[DepthFrame], Pose]  # frames taken together, and that robot pose in view 0's robot frame
+
+
+def compose(a: Pose, b: Pose) -> Pose:
+    """a o b on SE(2): pose b given in frame a, expressed where a is given."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], float(wrap_angle(a[2] + b[2])))
+
+
+def inverse(a: Pose) -> Pose:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (-(c * a[0] + s * a[1]), s * a[0] - c * a[1], float(wrap_angle(-a[2])))
+
+
+def _wall_in_frame0(w: ObservedWall, rel: Pose) -> ObservedWall:
+    """A wall observed from a later view, expressed in view 0's robot frame."""
+    c, s = math.cos(rel[2]), math.sin(rel[2])
+    R = np.array([[c, -s], [s, c]])
+    n0 = R @ w.n_r
+    d0 = w.d_r - float(n0 @ np.array(rel[:2]))
+    span = tuple(R @ e + np.array(rel[:2]) for e in w.span)
+    return ObservedWall(w.camera, n0, d0, span, w.points)
+
+
+# -- 1. walls in a frame ---------------------------------------------------------------------------
+
+
+def _frame_points_robot(frame: DepthFrame, cam: CameraConfig, stride: int, min_range: float,
+                        max_range: float) -> np.ndarray:
+    z = frame.depth_m()[::stride, ::stride].astype(float)
+    h, w = z.shape
+    v, u = np.mgrid[0:h, 0:w]
+    ok = (z > min_range) & (z < max_range)
+    K = frame.K
+    zz = z[ok]
+    p_c = np.stack([(u[ok] * stride - K[0, 2]) / K[0, 0] * zz, (v[ok] * stride - K[1, 2]) / K[1, 1] * zz, zz], axis=1)
+    T = cam.T_robot_camera
+    return p_c @ T[:3, :3].T + T[:3, 3]
+
+
+def extract_walls(frame: DepthFrame, cam: CameraConfig, rng: np.random.Generator, max_walls: int = 6,
+                  min_range: float = 0.2, max_range: float = 6.0) -> List[ObservedWall]:
+    """Vertical planes in one frame, found without a prior (sequential 2-point RANSAC in the floor plan)."""
+    stride = max(1, int(round(4 * frame.depth.shape[1] / float(cam.width))))
+    p = _frame_points_robot(frame, cam, stride, min_range, max_range)
+    p = p[(p[:, 2] > 0.05)]  # the floor says nothing about x, y, phi
+    xy = p[:, :2]
+    c_xy = cam.T_robot_camera[:2, 3]
+    rng_dist = np.hypot(*(xy - c_xy).T) if len(xy) else np.zeros(0)
+    walls: List[ObservedWall] = []
+    min_points = max(60, int(0.02 * len(xy)))
+    alive = np.ones(len(xy), dtype=bool)
+    for _ in range(max_walls):
+        idx = np.nonzero(alive)[0]
+        if len(idx) < min_points:
+            break
+        pts = xy[idx]
+        # The tolerance follows the depth noise (~ z^2) with a floor for as-built walls.
+        tol = 0.01 + 0.004 * rng_dist[idx] ** 2
+        best, best_in = None, None
+        pairs = rng.integers(0, len(pts), size=(80, 2))
+        for a, b in pairs:
+            d = pts[b] - pts[a]
+            L = math.hypot(d[0], d[1])
+            if L < 0.1:
+                continue
+            n = np.array([-d[1], d[0]]) / L
+            r = np.abs((pts - pts[a]) @ n)
+            inl = r < tol
+            cnt = int(np.count_nonzero(inl))
+            if best is None or cnt > best:
+                best, best_in = cnt, inl
+        if best is None or best < min_points:
+            break
+        q = pts[best_in]
+        # Least-squares line (principal axis), then the inliers again with the refined line.
+        mu = q.mean(axis=0)
+        _, _, vt = np.linalg.svd(q - mu, full_matrices=False)
+        n = vt[1]
+        r = np.abs((pts - mu) @ n)
+        inl = r < tol
+        q = pts[inl]
+        # A wall's points form one connected run along it; take the largest run (gaps > 0.3 m split).
+        along = (q - mu) @ vt[0]
+        order = np.argsort(along)
+        gaps = np.nonzero(np.diff(along[order]) > 0.3)[0]
+        bounds = np.concatenate([[0], gaps + 1, [len(order)]])
+        k = int(np.argmax(np.diff(bounds)))
+        run = order[bounds[k]:bounds[k + 1]]
+        alive[idx[inl]] = False
+        if len(run) < min_points:
+            continue
+        q = q[run]
+        mu = q.mean(axis=0)
+        _, _, vt = np.linalg.svd(q - mu, full_matrices=False)
+        n = vt[1]
+        d = -float(n @ mu)
+        if n @ c_xy + d < 0:  # towards the camera
+            n, d = -n, -d
+        s = (q - mu) @ vt[0]
+        # Trimmed ends: a few points of a neighbouring surface at a corner must not stretch the span.
+        s_lo, s_hi = np.percentile(s, [3.0, 97.0])
+        span = (mu + vt[0] * s_lo, mu + vt[0] * s_hi)
+        if np.linalg.norm(span[1] - span[0]) < 0.2:
+            continue  # a post or a box edge: too short to orient
+        walls.append(ObservedWall(cam.name, n, d, span, len(q)))
+    return walls
+
+
+# -- 2. map walls and hypotheses ------------------------------------------------------------------
+
+
+@dataclass
+class _MapWalls:
+    index: np.ndarray  # map plane index of each wall
+    n: np.ndarray  # (W, 2) unit horizontal normals
+    d: np.ndarray  # (W,)
+    ang: np.ndarray  # (W,) normal angle
+    a_end: np.ndarray  # (W, 2) ends of each wall's horizontal span
+    b_end: np.ndarray
+    centre: np.ndarray  # (W, 2)
+
+
+def _map_walls(plane_map: PlaneMap) -> _MapWalls:
+    rows = []
+    for i, p in enumerate(plane_map.planes):
+        n3 = np.asarray(p.normal, float)
+        h = math.hypot(n3[0], n3[1])
+        if h < 0.95:
+            continue  # not a wall (floor, ceiling, ramp)
+        n = n3[:2] / h
+        d = float(p.d) / h
+        v = p.vertices[:, :2]
+        t = np.array([-n[1], n[0]])
+        s = v @ t
+        foot = -d * n
+        rows.append((i, n, d, foot + t * s.min(), foot + t * s.max()))
+    if not rows:
+        raise InputError(f"{plane_map.source}: no walls (vertical planes) to relocalize against")
+    idx = np.array([r[0] for r in rows])
+    n = np.array([r[1] for r in rows])
+    a, b = np.array([r[3] for r in rows]), np.array([r[4] for r in rows])
+    return _MapWalls(idx, n, np.array([r[2] for r in rows]), np.arctan2(n[:, 1], n[:, 0]), a, b, (a + b) / 2)
+
+
+@dataclass
+class _MapPairs:
+    """Every ordered pair of map walls near enough to be seen together, sorted by the angle between
+    their normals (b's angle minus a's), so that the pairs matching an observed angle are one
+    slice."""
+
+    a: np.ndarray
+    b: np.ndarray
+    delta: np.ndarray
+
+
+def _map_pairs(mw: _MapWalls, index: PlaneIndex, reach: float) -> _MapPairs:
+    plane_to_wall = -np.ones(index.n, dtype=np.int64)
+    plane_to_wall[mw.index] = np.arange(len(mw.index))
+    a_list, b_list = [], []
+    lo = np.minimum(mw.a_end, mw.b_end)
+    hi = np.maximum(mw.a_end, mw.b_end)
+    for ka in range(len(mw.index)):
+        # Walls whose horizontal extent comes within ``reach`` of this wall's extent (a long
+        # corridor wall pairs with the short walls near either end, not only its middle).
+        near = plane_to_wall[np.asarray(index.near_box(lo[ka], hi[ka], reach), dtype=np.int64)]
+        near = near[(near >= 0) & (near != ka)]
+        a_list.append(np.full(len(near), ka))
+        b_list.append(near)
+    a = np.concatenate(a_list) if a_list else np.zeros(0, np.int64)
+    b = np.concatenate(b_list) if b_list else np.zeros(0, np.int64)
+    delta = wrap_angle(mw.ang[b] - mw.ang[a])
+    order = np.argsort(delta)
+    return _MapPairs(a[order], b[order], np.asarray(delta)[order])
+
+
+def _span_fits(ends_r: np.ndarray, phi: np.ndarray, t: np.ndarray, mw: _MapWalls, k: np.ndarray,
+               tol: float) -> np.ndarray:
+    """Whether an observed span (two ends, robot frame) lands on map wall k's extent, per hypothesis."""
+    c, s = np.cos(phi), np.sin(phi)
+    tang = np.stack([-mw.n[k, 1], mw.n[k, 0]], axis=1)
+    lo = np.minimum(np.einsum("ij,ij->i", mw.a_end[k], tang), np.einsum("ij,ij->i", mw.b_end[k], tang))
+    hi = np.maximum(np.einsum("ij,ij->i", mw.a_end[k], tang), np.einsum("ij,ij->i", mw.b_end[k], tang))
+    ok = np.ones(len(k), dtype=bool)
+    for e in ends_r:
+        gx = c * e[0] - s * e[1] + t[:, 0]
+        gy = s * e[0] + c * e[1] + t[:, 1]
+        sv = gx * tang[:, 0] + gy * tang[:, 1]
+        ok &= (sv >= lo - tol) & (sv <= hi + tol)
+    return ok
+
+
+def _hypotheses(walls: List[ObservedWall], mw: _MapWalls, pairs: _MapPairs, region
+                ) -> List[Tuple[float, float, float, Tuple[int, int]]]:
+    """Poses implied by matching each non-parallel pair of observed walls to map wall pairs."""
+    out = []
+    lo, hi = region
+    for i in range(len(walls)):
+        for j in range(i + 1, len(walls)):
+            wi, wj = walls[i], walls[j]
+            ai = math.atan2(wi.n_r[1], wi.n_r[0])
+            aj = math.atan2(wj.n_r[1], wj.n_r[0])
+            if abs(math.sin(aj - ai)) < math.sin(MIN_PAIR_ANGLE):
+                continue
+            d_obs = float(wrap_angle(aj - ai))
+            sel = []
+            for dd in (d_obs - 2 * math.pi, d_obs, d_obs + 2 * math.pi):
+                s0 = np.searchsorted(pairs.delta, dd - ANGLE_TOL)
+                s1 = np.searchsorted(pairs.delta, dd + ANGLE_TOL)
+                sel.append(np.arange(s0, s1))
+            sel = np.concatenate(sel)
+            if len(sel) == 0:
+                continue
+            ka, kb = pairs.a[sel], pairs.b[sel]
+            phi = np.asarray(wrap_angle(mw.ang[ka] - ai))
+            # n_a . t = d_i - d_a and n_b . t = d_j - d_b, by Cramer's rule.
+            na, nb = mw.n[ka], mw.n[kb]
+            r1, r2 = wi.d_r - mw.d[ka], wj.d_r - mw.d[kb]
+            det = na[:, 0] * nb[:, 1] - na[:, 1] * nb[:, 0]
+            good = np.abs(det) > 1e-6
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tx = (r1 * nb[:, 1] - r2 * na[:, 1]) / det
+                ty = (na[:, 0] * r2 - nb[:, 0] * r1) / det
+            t = np.stack([tx, ty], axis=1)
+            good &= np.all(t >= lo, axis=1) & np.all(t <= hi, axis=1)
+            good &= _span_fits(np.array(wi.span), phi, t, mw, ka, 0.15)
+            good &= _span_fits(np.array(wj.span), phi, t, mw, kb, 0.15)
+            for k in np.nonzero(good)[0]:
+                out.append((float(t[k, 0]), float(t[k, 1]), float(phi[k]), (int(mw.index[ka[k]]), int(mw.index[kb[k]]))))
+    return out
+
+
+def _cluster(hyps) -> List[Tuple[float, float, float, int, set]]:
+    cells: Dict[Tuple[int, int, int], List] = {}
+    for x, y, phi, pair in hyps:
+        key = (int(math.floor(x / CLUSTER_XY)), int(math.floor(y / CLUSTER_XY)),
+               int(math.floor(wrap_angle(phi) / CLUSTER_PHI)))
+        cells.setdefault(key, []).append((x, y, phi, pair))
+    out = []
+    for members in cells.values():
+        xs = np.array([m[0] for m in members])
+        ys = np.array([m[1] for m in members])
+        ph = np.array([m[2] for m in members])
+        ref = ph[0]
+        phi = float(wrap_angle(ref + np.mean(wrap_angle(ph - ref))))
+        planes = {p for m in members for p in m[3]}
+        out.append((float(xs.mean()), float(ys.mean()), phi, len(members), planes))
+    out.sort(key=lambda c: -c[3])
+    return out
+
+
+def _wall_agreement(walls: List[ObservedWall], mw: _MapWalls, x: float, y: float, phi: float) -> float:
+    """Points of the observed walls that a map wall explains from this pose (plane and extent)."""
+    c, s = math.cos(phi), math.sin(phi)
+    total = 0.0
+    for w in walls:
+        n_g = np.array([c * w.n_r[0] - s * w.n_r[1], s * w.n_r[0] + c * w.n_r[1]])
+        d_g = w.d_r - float(n_g @ np.array([x, y]))
+        same = (mw.n @ n_g > math.cos(ANGLE_TOL)) & (np.abs(mw.d - d_g) < 0.08)
+        if not same.any():
+            continue
+        k = np.nonzero(same)[0]
+        ends = np.array(w.span)
+        ok = _span_fits(ends, np.full(len(k), phi), np.tile([x, y], (len(k), 1)), mw, k, 0.15)
+        if ok.any():
+            total += w.points
+    return total
+
+
+# -- 4. verification by prediction ----------------------------------------------------------------
+
+
+class _Scorer:
+    """Log-likelihood of the frames' depth given a pose, on a coarse pixel grid."""
+
+    def __init__(self, robot: RobotConfig, plane_map: PlaneMap, views: Sequence[View], index: PlaneIndex,
+                 max_range: float, stride: int = SCORE_STRIDE):
+        self.robot, self.map, self.index, self.max_range = robot, plane_map, index, max_range
+        self.items = []
+        for frames, rel in views:
+            for f in frames:
+                cam = robot.camera(f.camera)
+                stride = max(1, int(round(stride * f.depth.shape[1] / float(cam.width))))
+                grid = CameraGrid(np.asarray(f.K, float), f.depth.shape[1], f.depth.shape[0], stride)
+                z = f.depth_m()[::stride, ::stride].astype(float)
+                h, w = grid.shape
+                z = z[:h, :w]
+                cols, rows, _, _ = grid.rays
+                # Measured points, to tell floor pixels (no information) from the rest.
+                xr = cols[None, :] * z
+                yr = rows[:, None] * z
+                p_c = np.stack([xr, yr, z], axis=-1).reshape(-1, 3)
+                T = cam.T_robot_camera
+                z_robot = (p_c @ T[:3, :3].T + T[:3, 3])[:, 2].reshape(h, w)
+                valid = (z > robot.localizer.min_range) & (z < max_range) & (z_robot > 0.05)
+                self.items.append((cam, grid, z, valid, rel))
+
+    def score(self, pose: Tuple[float, float, float], coarse: bool = False) -> Tuple[float, float, List[str]]:
+        """(log-likelihood, share of wall pixels that agree, supporting walls) of the frames at ``pose``.
+
+        ``coarse``: for hypotheses straight from a wall pair, a few centimetres and a degree off
+        their refined pose; the agreement band is widened so that they are ranked by where
+        they are, not by how exactly.
+        """
+        total, agree, scored, through = 0.0, 0, 0, 0
+        seen: Dict[str, int] = {}
+        for cam, grid, z, valid, rel in self.items:
+            T_gc = pose_to_T_ground_robot(*compose(pose, rel)) @ cam.T_robot_camera
+            cands = self.index.in_view(T_gc, grid.frustum, self.max_range)
+            views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
+            label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
+            cols, rows, _, _ = grid.rays
+            has = (label >= 0) & valid
+            if not has.any():
+                continue
+            r_idx, c_idx = np.nonzero(has)
+            pis = np.array([views[k].pi_camera for k in label[r_idx, c_idx]])
+            ray = np.stack([cols[c_idx], rows[r_idx], np.ones(len(r_idx))], axis=1)
+            denom = np.einsum("ij,ij->i", pis[:, :3], ray)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z_pred = -pis[:, 3] / denom
+            zm = z[r_idx, c_idx]
+            sigma = 0.01 + 0.005 * zm ** 2  # depth noise plus as-built walls, generous on purpose
+            if coarse:
+                sigma = sigma + 0.03 + 0.02 * zm  # a pair hypothesis: centimetres and a degree off
+            res = (zm - z_pred) / sigma
+            inlier = np.abs(res) < 3.0
+            behind = res >= 3.0
+            # Log-likelihood ratio against knowing nothing (depth uniform over the range): a pixel
+            # on its predicted wall gains up to ~5 nats, clutter in front costs at most log(0.1),
+            # and a point behind a predicted wall is free-space evidence against the pose.
+            gauss = np.exp(-0.5 * res ** 2) / (sigma * math.sqrt(2.0 * math.pi))
+            ll = np.log(IN_WEIGHT * gauss * self.max_range + (1.0 - IN_WEIGHT))
+            ll = np.where(behind, SEE_THROUGH, ll)
+            total += float(ll.sum())
+            agree += int(np.count_nonzero(inlier))
+            through += int(np.count_nonzero(behind))
+            scored += len(res)
+            for k in np.unique(label[r_idx, c_idx][inlier]):
+                pid = views[int(k)].plane_id
+                seen[pid] = seen.get(pid, 0) + int(np.count_nonzero(label[r_idx, c_idx][inlier] == k))
+            # Valid measurements where the map predicts nothing (beyond the map, through an opening
+            # to the outside, furniture) say nothing either way: the baseline.
+            total += NOTHING_PREDICTED * float(np.count_nonzero(valid & (label < 0)))  # (zero: the baseline)
+        support = agree / scored if scored else 0.0
+        self.last_see_through = through / scored if scored else 0.0
+        planes = [p for p, n in sorted(seen.items(), key=lambda kv: -kv[1]) if n >= 5]
+        return total / PIXEL_CORRELATION, support, planes
+
+
+# -- 5. the whole search --------------------------------------------------------------------------
+
+
+class Relocalizer:
+    def __init__(self, robot: RobotConfig, plane_map: PlaneMap, localizer: Optional[Localizer] = None):
+        self.robot = robot
+        self.map = plane_map
+        self.localizer = localizer or Localizer(robot, plane_map)
+        self.index = self.localizer.index
+        self.walls = _map_walls(plane_map)
+        self.max_range = robot.localizer.max_range
+        # Two walls seen at once are both within the range of one robot: within twice it of each other.
+        self.pairs = _map_pairs(self.walls, self.index, 2.0 * self.max_range)
+
+    def relocalize(self, frames: Sequence[DepthFrame], region: Optional[Sequence[float]] = None,
+                   seed: int = 0, more_views: Sequence[View] = ()) -> RelocalizationResult:
+        """Hypotheses for the robot pose at ``frames``, best first, with a verdict.
+
+        ``more_views``: frames taken from other poses of the same robot (an in-place turn), each
+        with that pose relative to the first (odometry); they add walls and evidence.
+        """
+        t0 = time.perf_counter()
+        if not frames:
+            raise InputError("relocalize needs at least one depth frame")
+        views: List[View] = [(list(frames), (0.0, 0.0, 0.0))] + [(list(f), tuple(float(v) for v in rel))
+                                                                   for f, rel in more_views]
+        for fs, rel in views:
+            if not all(math.isfinite(v) for v in rel):
+                raise InputError(f"relative pose of a view must be finite, got {rel}")
+            for f in fs:
+                self.robot.camera(f.camera)  # unknown camera: one clear error
+        lo_map, hi_map = self.map.bounds()
+        if region is not None:
+            x0, y0, x1, y1 = (float(v) for v in region)
+            if not (x0 < x1 and y0 < y1) or x1 < lo_map[0] or x0 > hi_map[0] or y1 < lo_map[1] or y0 > hi_map[1]:
+                raise InputError(f"region ({x0}, {y0}, {x1}, {y1}) is empty or outside the map "
+                                 f"({lo_map[0]:.2f}, {lo_map[1]:.2f}, {hi_map[0]:.2f}, {hi_map[1]:.2f})")
+            bounds = (np.array([x0, y0]), np.array([x1, y1]))
+        else:
+            bounds = (lo_map[:2], hi_map[:2])
+        rng = np.random.default_rng(seed)
+        # Find the walls in each frame.
+        walls: List[ObservedWall] = []
+        for fs, rel in views:
+            for f in fs:
+                found = extract_walls(f, self.robot.camera(f.camera), rng, min_range=self.robot.localizer.min_range,
+                                      max_range=self.max_range)
+                walls += [_wall_in_frame0(w, rel) for w in found]
+        # Pose hypotheses from pairs of non-parallel walls matched to map pairs.
+        hyps = _hypotheses(walls, self.walls, self.pairs, bounds)
+        if not hyps:
+            why = ("fewer than two non-parallel walls in view" if len(walls) < 2 else
+                   "no pair of map walls matches the walls in view")
+            return RelocalizationResult(NONE, [], why, (time.perf_counter() - t0) * 1e3, len(walls))
+        # Merge the hypotheses that agree; rank them by how many of the observed walls (weighted by
+        # their points) land on a map wall, and verify the best by predicting the frames.
+        clusters = _cluster(hyps)
+        agreement = [_wall_agreement(walls, self.walls, c[0], c[1], c[2]) for c in clusters]
+        order = sorted(range(len(clusters)), key=lambda k: (-agreement[k], -clusters[k][3]))
+        clusters = [clusters[k] for k in order[:MAX_VERIFY]]
+        scorer = _Scorer(self.robot, self.map, views, self.index, self.max_range)
+        coarse = _Scorer(self.robot, self.map, views, self.index, self.max_range, stride=COARSE_STRIDE)
+        scale = (COARSE_STRIDE / SCORE_STRIDE) ** 2  # comparable with the fine scores (4x fewer pixels)
+        scored = []
+        for x, y, phi, _, _ in clusters:
+            s, support, planes = coarse.score((x, y, phi), coarse=True)
+            s *= scale
+            scored.append((s, support, x, y, phi, planes))
+        scored.sort(key=lambda r: -r[0])
+        # Refine the best with the normal localizer and score again.
+        best_score = scored[0][0]
+        refined: List[Hypothesis] = []
+        for s, _support, x, y, phi, _planes in scored[:MAX_REFINE]:
+            if s < best_score - 4 * UNIQUE_MARGIN and len(refined) >= 2:
+                break
+            h = self._refine(views, (x, y, phi), scorer)
+            if h is not None:
+                refined.append(h)
+        hyps_out = _merge(refined)
+        hyps_out = [h for h in hyps_out if h.support >= MIN_SUPPORT]
+        ms = (time.perf_counter() - t0) * 1e3
+        if not hyps_out:
+            return RelocalizationResult(NONE, [], "no hypothesis explains the depth (support below "
+                                        f"{MIN_SUPPORT:.0%})", ms, len(walls))
+        hyps_out.sort(key=lambda h: -h.score)
+        close = [h for h in hyps_out if h.score >= hyps_out[0].score - UNIQUE_MARGIN]
+        best = hyps_out[0]
+        if (len(close) == 1 and best.status == "ok" and best.support >= UNIQUE_SUPPORT
+                and best.see_through <= UNIQUE_SEE_THROUGH):
+            return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
+        if len(close) == 1:
+            h = hyps_out[0]
+            if h.status != "ok":
+                why = f"best hypothesis not confirmed by the localizer ({h.status})"
+            elif h.see_through > UNIQUE_SEE_THROUGH:
+                why = (f"the cameras see through walls the best hypothesis predicts ({h.see_through:.1%} of its pixels; "
+                       f"unique allows {UNIQUE_SEE_THROUGH:.0%}): a view it does not explain")
+            else:
+                why = f"best hypothesis explains only {h.support:.0%} of the wall pixels (unique needs {UNIQUE_SUPPORT:.0%})"
+            return RelocalizationResult(AMBIGUOUS, hyps_out, why, ms, len(walls))
+        return RelocalizationResult(AMBIGUOUS, close, f"{len(close)} hypotheses within {UNIQUE_MARGIN:.0f} nats of "
+                                    "each other: the views cannot tell them apart", ms, len(walls))
+
+    def _refine(self, views: Sequence[View], pose, scorer: _Scorer) -> Optional[Hypothesis]:
+        """The normal localizer from this hypothesis, on the first view it can confirm it from."""
+        cov0 = coarse_covariance(0.05, math.radians(3.0))
+        res = None
+        for fs, rel in views:
+            res = self.localizer.localize(fs, compose(pose, rel), cov0)
+            if res.status == "ok":
+                break
+        back = inverse(rel)
+        s0, support0, planes0 = scorer.score(pose)
+        through0 = scorer.last_see_through
+        unrefined = Hypothesis(pose[0], pose[1], pose[2], cov0, s0, support0, planes0, False, res.status, through0)
+        if res.status == "no_planes":
+            return unrefined
+        p = compose((res.x, res.y, float(wrap_angle(res.phi))), back)
+        s, support, planes = scorer.score(p)
+        if s0 > s + REFINE_SLACK:  # the refinement went astray (a wrong wall): keep the unrefined pose
+            return unrefined
+        # The covariance moves with the composition: d(pose_k o back)/d(pose_k).
+        c, sn = math.cos(res.phi), math.sin(res.phi)
+        J = np.array([[1.0, 0.0, -sn * back[0] - c * back[1]], [0.0, 1.0, c * back[0] - sn * back[1]], [0.0, 0.0, 1.0]])
+        cov = J @ np.asarray(res.cov) @ J.T
+        return Hypothesis(p[0], p[1], p[2], cov, s, support, planes, True, res.status, scorer.last_see_through)
+
+
+def _merge(hyps: List[Hypothesis]) -> List[Hypothesis]:
+    out: List[Hypothesis] = []
+    for h in sorted(hyps, key=lambda h: -h.score):
+        if any(math.hypot(h.x - o.x, h.y - o.y) < 0.03 and abs(float(wrap_angle(h.phi - o.phi))) < math.radians(1.5)
+               for o in out):
+            continue
+        out.append(h)
+    return out

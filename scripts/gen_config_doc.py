@@ -1,0 +1,241 @@
+"""Write docs/configuration.md from the ranges declared in the code (``robot.config.ranges``).
+
+    python scripts/gen_config_doc.py            # print the document
+    python scripts/gen_config_doc.py --write    # update docs/configuration.md
+    python scripts/gen_config_doc.py --check    # exit 1 if docs/configuration.md is out of date
+
+``tests/test_config_bounds.py`` runs the check, so the document cannot drift from the code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+from typing import Any, List
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from robot.base import files  # noqa: E402
+from robot.config import schema  # noqa: E402
+from robot.config.loader import MAX_CAMERAS, RobotConfig  # noqa: E402
+from robot.config.ranges import field_choices, field_doc, field_range  # noqa: E402
+from robot.config.realsense import RealSenseConfig  # noqa: E402
+from robot.config.sections import CameraConfig  # noqa: E402
+from robot.control import path_file  # noqa: E402
+from robot.maps import plane_map  # noqa: E402
+
+DOC = ROOT / "docs" / "configuration.md"
+
+
+def _default(f: dataclasses.Field) -> str:
+    if f.default is not dataclasses.MISSING:
+        value = f.default
+    elif f.default_factory is not dataclasses.MISSING:  # type: ignore[misc]
+        value = f.default_factory()  # type: ignore[misc]
+        if dataclasses.is_dataclass(value):
+            return "(section)"
+    else:
+        return "required"
+    if value is None:
+        return "absent"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f"`{value}`"
+    if isinstance(value, float):
+        return f"`{value!r}`" if len(repr(value)) <= 10 else f"`{value:.6g}`"
+    return f"`{value!r}`"
+
+
+def _allowed(f: dataclasses.Field) -> str:
+    rng, choices = field_range(f), field_choices(f)
+    if rng is not None:
+        kind = "integer " if rng.integer else ""
+        return f"{kind}{rng.describe()}".replace("|", "\\|")
+    if choices is not None:
+        return ", ".join(f"`{c}`" for c in choices)
+    if f.type in ("bool", bool):
+        return "true, false"
+    if "Tuple" in str(f.type) or "List" in str(f.type):
+        return "list (see the section's module)"
+    if "str" in str(f.type):
+        return "text"
+    return "finite, >= 0 (no range declared yet)"
+
+
+def _table(cls, skip=(), rename=None) -> List[str]:
+    rename = rename or {}
+    out = ["| key | default | allowed | meaning |", "|---|---|---|---|"]
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        doc = field_doc(f).replace("|", "\\|")
+        out.append(f"| `{rename.get(f.name, f.name)}` | {_default(f)} | {_allowed(f)} | {doc} |")
+    return out
+
+
+def _sections() -> List[str]:
+    out: List[str] = []
+    for f in dataclasses.fields(RobotConfig):
+        if f.name in ("cameras", "map_path", "source"):
+            continue
+        cls = type(f.default_factory()) if f.default_factory is not dataclasses.MISSING else None  # type: ignore[misc]
+        if cls is None or not dataclasses.is_dataclass(cls):
+            continue
+        title = (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ and not cls.__doc__.startswith(cls.__name__) \
+            else ""
+        out += ["", f"### `{f.name}:`", ""]
+        if title:
+            out += [title, ""]
+        out += _table(cls)
+    return out
+
+
+def _cli_options() -> List[str]:
+    from robot.cli.main import build_parser
+
+    rows = []
+    parser = build_parser()
+
+    def walk(p: argparse.ArgumentParser, prefix: str) -> None:
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, sub in sorted(action.choices.items()):
+                    walk(sub, f"{prefix} {name}".strip())
+            elif getattr(action.type, "bounds", None) is not None and action.option_strings:
+                lo, hi, unit, lo_open = action.type.bounds
+                span = f"{'(' if lo_open else '['}{_num(lo)}, {_num(hi)}]{' ' + unit if unit else ''}"
+                rows.append(f"| `robotctl {prefix}` | `{action.option_strings[-1]}` | {span} |")
+
+    walk(parser, "")
+    return ["| command | option | allowed |", "|---|---|---|"] + rows
+
+
+def _num(x) -> str:
+    return str(x) if isinstance(x, int) else f"{x:g}"
+
+
+def _file_limits() -> List[str]:
+    out = ["| file | size limit | refused before reading |", "|---|---|---|"]
+    for kind in files.KINDS:
+        out.append(f"| {kind.name} | {files.format_size(kind.max_bytes)} | directories, FIFOs, devices, sockets |")
+    return out
+
+
+def render() -> str:
+    cam_rename = {"mount_xyz": "mount.xyz", "mount_rpy_deg": "mount.rpy_deg"}
+    lines = [
+        "# Configuration reference",
+        "",
+        "<!-- Generated by scripts/gen_config_doc.py from the ranges declared in the code; do not edit by hand.",
+        "     Regenerate with: python scripts/gen_config_doc.py --write -->",
+        "",
+        "Every number the robot reads from a file has a physical range, declared once next to its field",
+        "in the code. A value outside it is refused when the file is loaded, before anything moves, with",
+        "one error line that names the file, the key and the range, for example:",
+        "",
+        "```",
+        "robotctl run: error: robot.yaml: control: 'rate' must be <= 200.0 Hz (allowed: [10.0, 200.0] Hz), got 1e+308",
+        "```",
+        "",
+        "`[a, b]` includes both ends, `(a, b]` excludes `a`. Integer keys take whole numbers (`1e3` is",
+        "read as 1000). The same checks apply to configs built in code (each section's `__post_init__`).",
+        "Safety limits are bounded on both sides: a watchdog, a link timeout or a command age cannot be",
+        "set so long that the function it guards is off in effect, and the control rate cannot be set so",
+        "high that the loop never keeps up.",
+        "",
+        "## Reading files",
+        "",
+        "Every loader opens its file through `robot/base/files.py`: only regular files are read (a FIFO,",
+        "a device such as `/dev/zero`, or a directory is refused at once, before any byte is read, so",
+        "nothing can block or exhaust memory), and each kind of file has a size limit:",
+        "",
+        *_file_limits(),
+        "",
+        "YAML is read with PyYAML's safe loader plus three rules of our own:",
+        "",
+        f"- at most {schema.MAX_YAML_DEPTH} levels of nesting (a map needs 7);",
+        f"- aliases may add at most {schema.MAX_ALIAS_NODES:,} nodes to what the file spells out, and an",
+        "  alias may not contain itself: an \"alias bomb\" of a few hundred bytes is refused at once;",
+        "- numbers in exponent notation without a dot (`1e-4`, `1E5`) are numbers, as in YAML 1.2",
+        "  (YAML 1.1 would read them as text).",
+        "",
+        "Error messages quote at most about 60 characters of a rejected value.",
+        "",
+        "## Robot config (`robot.yaml`)",
+        "",
+        "Unknown keys are errors; a missing optional key takes its default. Every section is optional",
+        "except `cameras`.",
+        "",
+        "### `cameras:` (a list of 1 to " + str(MAX_CAMERAS) + " cameras)",
+        "",
+        *_table(CameraConfig, skip=("realsense",), rename=cam_rename),
+        "",
+        "### `cameras[].realsense:`",
+        "",
+        *_table(RealSenseConfig),
+        *_sections(),
+        "",
+        "### Rules across sections",
+        "",
+        "- `chassis.watchdog_timeout` must cover at least two control periods (`2 / control.rate`): a",
+        "  shorter one stops the wheels between two commands;",
+        "- `health.max_command_age` must be at least one control period, or every command is dropped;",
+        "- `health.slow_after` must not be later than `health.stop_after`;",
+        "- `localizer.min_range` must be below `localizer.max_range`.",
+        "",
+        "## Path files (`paths/*.yaml`)",
+        "",
+        f"At most {path_file.MAX_WAYPOINTS:,} waypoints; `description` at most "
+        f"{path_file.MAX_DESCRIPTION_CHARS:,} characters. `start` takes `x`, `y`, `heading`; `defaults` takes",
+        "`speed`, `tolerance`, `heading_tolerance`, `dwell`, which each waypoint may override.",
+        "",
+        *_table(path_file.Waypoint),
+        "",
+        "## Plane maps (`maps/*.yaml`)",
+        "",
+        "| item | limit |",
+        "|---|---|",
+        f"| vertex coordinates | {plane_map.COORDINATE_RANGE.describe()} |",
+        f"| planes | 1 to {plane_map.MAX_PLANES:,} |",
+        f"| polygons per plane | 1 to {plane_map.MAX_POLYGONS_PER_PLANE:,} |",
+        f"| vertices per polygon | 3 to {plane_map.MAX_VERTICES_PER_POLYGON:,} |",
+        f"| plane id | 1 to {plane_map.MAX_ID_CHARS} characters |",
+        f"| planarity | every vertex within {plane_map.PLANARITY_TOLERANCE * 1000:g} mm of its plane |",
+        "",
+        "## Command-line options",
+        "",
+        "Numeric options are checked by the parser: a value outside its range is one error line and",
+        "exit status 2.",
+        "",
+        *_cli_options(),
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: Any = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--write", action="store_true", help=f"write {DOC.relative_to(ROOT)}")
+    ap.add_argument("--check", action="store_true", help=f"exit 1 if {DOC.relative_to(ROOT)} is out of date")
+    args = ap.parse_args(argv)
+    text = render()
+    if args.write:
+        DOC.write_text(text, encoding="utf-8")
+        return 0
+    if args.check:
+        current = DOC.read_text(encoding="utf-8") if DOC.exists() else ""
+        if current != text:
+            sys.stderr.write(f"{DOC.relative_to(ROOT)} is out of date: run python scripts/gen_config_doc.py --write\n")
+            return 1
+        return 0
+    sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
