@@ -2,7 +2,8 @@
 
     python scripts/benchmark.py [--quick] [--only NAME ...] [--out BENCHMARKS.md]
 
-Each ``scripts/bench_<topic>.py`` has ``run(quick) -> str`` (a Markdown section).
+Each ``scripts/bench_<topic>.py`` has ``run(quick) -> str`` (a Markdown section), or
+``section(quick) -> str`` when its ``run`` returns figures rather than Markdown.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 SECTIONS = ["bench_localizer", "bench_controller", "bench_cpu", "bench_buildings", "bench_protocol", "bench_ifc", "bench_realsense",
-            "bench_render", "bench_calibration", "bench_relocalize", "bench_safety"]
+            "bench_render", "bench_calibration", "bench_relocalize", "bench_safety", "bench_integrity"]
 
 
 def git_describe() -> str:
@@ -77,7 +78,7 @@ def main() -> int:
             continue
         t0 = time.perf_counter()
         print(f"running {name} ...", file=sys.stderr, flush=True)
-        body += [mod.run(quick=args.quick), "", f"_{name}: {time.perf_counter() - t0:.0f} s_", ""]
+        body += [getattr(mod, "section", mod.run)(quick=args.quick), "", f"_{name}: {time.perf_counter() - t0:.0f} s_", ""]
     Path(args.out).write_text("\n".join(header + body) + "\n")
     print(f"wrote {args.out}", file=sys.stderr)
     return 0

@@ -20,8 +20,16 @@ import pytest
 from robot.base.errors import ConfigError
 from robot.base.geometry import pose_to_T_ground_robot, wrap_angle
 from robot.base.samples import WheelOdometry
-from robot.calibration.collect import Collector, plane_noise
-from robot.calibration.model import D435_BASELINE, WHEEL_DIFFS, OdometryArrays, ParamLayout, integrate_wheels
+from robot.calibration.collect import Collector, image_center, intrinsics_of, plane_noise
+from robot.calibration.model import (
+    CAMERA_PARAMS,
+    D435_BASELINE,
+    WHEEL_DIFFS,
+    OdometryArrays,
+    ParamLayout,
+    disparity_effect,
+    integrate_wheels,
+)
 from robot.calibration.output import to_calibration
 from robot.calibration.solver import NoiseModel, calibrate, check_calibration
 from robot.config import load_robot_config, parse_robot_config
@@ -169,10 +177,16 @@ class SyntheticWorld:
                 d_meas = d_C * seen + self.rng.normal(0.0, sd)
                 a, b = _tangents(n_C)
                 n_meas = n_C + self.rng.normal(0.0, sa) * a + self.rng.normal(0.0, sa) * b
+                centroid_R = T0[:3, :3] @ (p_C.mean(axis=0) * seen) + T0[:3, 3]
+                # the camera's smooth disparity error, where in the image the wall's points are
+                center, _ = image_center(cam, centroid_R, n_C, d_C)
+                dd, dn = disparity_effect(n_C, d_C, center, intrinsics_of(cam))
+                e = self.truth[self.layout.camera_slice(cam.name)][len(CAMERA_PARAMS):]
+                d_meas += float(dd @ e)
+                n_meas = n_meas + dn @ e
                 n_meas /= np.linalg.norm(n_meas)
                 n_R = T0[:3, :3] @ n_meas
                 d_R = d_meas - float(T0[:3, 3] @ n_R)
-                centroid_R = T0[:3, :3] @ (p_C.mean(axis=0) * seen) + T0[:3, 3]
                 reports.append(PlaneReport(plane.id, cam.name, inliers, [float(v) for v in n_R], d_R, True, "ok",
                                            centroid=[float(v) for v in centroid_R]))
                 psi = math.atan2(n_R[1], n_R[0])
@@ -616,3 +630,79 @@ def test_odometry_integration_matches_the_kinematics():
     m = integrate_wheels(np.tile([1e-3] * 4, (1000, 1)), np.zeros(1000, int), 1, odo)[0]
     assert m[1] == pytest.approx((-radii[0] + radii[1] + radii[2] - radii[3]) / 4, rel=1e-6)
     assert isinstance(OdometryArrays, type)
+
+
+class _RecordingTap:
+    """Writes what the simulated-clock runner's core sees as the app records it: the config, the wheel
+    reports, each localized frame and its planes (coarse pose, accepted planes)."""
+
+    def __init__(self, recorder, robot, plane_map):
+        from robot.config.dump import effective_config_dict
+        from robot.recording import schema as ms
+
+        self.ms, self.rec = ms, recorder
+        text = __import__("pathlib").Path(robot.source).read_text()
+        recorder.write_config(0.0, text, __import__("pathlib").Path(plane_map.source).read_text(), robot.source,
+                              plane_map.source, effective_config_dict(robot, plane_map.source))
+        self.frames = {}
+
+    def on_odometry(self, odo):
+        self.rec.write(self.ms.TOPIC_ODOMETRY, odo.t, self.ms.odometry_message(odo.t, odo.speeds, odo.angles, odo.dt,
+                                                                                odo.t_board))
+
+    def on_capture(self, frames, result):
+        for f in frames:
+            self.rec.write_depth(f.t_capture, f)
+        self.frames[frames[0].t_capture] = {f.camera: f.frame_number for f in frames}
+
+    def on_fused(self, result, t, report):
+        for cam, number in self.frames.pop(t).items():
+            self.rec.write(self.ms.TOPIC_PLANES, t, self.ms.planes_message(
+                t, cam, [p for p in result.planes if p.camera == cam], frame_number=number, method="joint",
+                coarse=(result.x, result.y, result.phi), coarse_cov=np.diag([1e-4, 1e-4, 1e-4]), status=result.status,
+                accepted=report.accepted, rejected=report.rejected))
+
+
+def test_a_recorded_run_is_calibration_data_and_the_command_reads_it(tmp_path):
+    """``robotctl calibrate --from RUN.mcap``: the frames of a recorded drive are localized again from
+    their coarse poses; a short straight drive observes little, and the command says so in one table
+    without writing what it did not observe."""
+    import json
+    import subprocess
+    import sys
+
+    pytest.importorskip("mcap")
+    from robot.control.path_file import parse_path
+    from robot.recording.recorder import Recorder
+    from robot.sim.calibration_run import collect_recording
+    from robot.sim.runner import RunSettings, run_path
+
+    path = tmp_path / "run.mcap"
+    rec = Recorder(str(path))
+    rec.set_depth_budget(None)
+    plan = parse_path({"start": {"x": 0.4, "y": 0.6, "heading": 0.0},
+                       "waypoints": [{"x": 0.7, "y": 0.6, "heading": 0.0, "tolerance": 0.01}]})
+    run = run_path(ROBOT, ARENA, plan, RunSettings(max_time=20.0), tap=_RecordingTap(rec, ROBOT, ARENA))
+    rec.close()
+    assert run.finished
+    data = collect_recording(path)
+    assert len(data.keyframes) >= 5 and data.observation_count() >= 10 and len(data.odometry) > 100
+    for kf in data.keyframes:  # the sim's frames carry their true pose: the refits are where the walls are
+        assert kf.truth is not None and math.hypot(kf.pose[0] - kf.truth[0], kf.pose[1] - kf.truth[1]) < 0.01
+    out = tmp_path / "cal.yaml"
+    p = subprocess.run([sys.executable, "-m", "robot.cli.main", "calibrate", "--from", str(path), "--out", str(out),
+                        "--json"], capture_output=True, text=True, timeout=600)
+    assert p.returncode in (0, 1), p.stderr
+    doc = json.loads(p.stdout)
+    params = {q["name"]: q for q in doc["parameters"]}
+    assert not params["front.z"]["observable"] and not params["odometry.lx_plus_ly"]["observable"]  # no turn
+    if out.exists():
+        cal = load_calibration(out)
+        assert cal.odometry.lx_plus_ly is None
+        for n, c in cal.cameras.items():  # an angle the data did not observe is the configured one
+            for k, angle in enumerate(("roll", "pitch", "yaw")):
+                if c.mount_rpy_deg is not None and not params[f"{n}.{angle}"]["observable"]:
+                    assert c.mount_rpy_deg[k] == ROBOT.camera(n).mount_rpy_deg[k]
+    p = subprocess.run([sys.executable, "-m", "robot.cli.main", "calibrate", "--from", str(tmp_path / "none.mcap")],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "none.mcap" in p.stderr

@@ -310,3 +310,27 @@ def test_the_controller_slows_down_while_a_protection_level_is_over_its_limit():
     assert core.speed_scale(0.02, fine)[0] == 1.0
     scale, reason = core.speed_scale(0.02, over)
     assert scale == ROBOT.health.slow_scale and "protection level" in reason
+
+
+def test_a_map_plane_carries_its_as_built_tolerance():
+    from robot.base.errors import ConfigError
+    from robot.maps.plane_map import DEFAULT_TOLERANCE, parse_plane_map
+
+    quad = [[0, 0, 0], [1, 0, 0], [1, 0, 1]]
+    m = parse_plane_map({"planes": [{"id": "a", "vertices": quad},
+                                    {"id": "b", "vertices": quad, "tolerance": 0.02},
+                                    {"id": "c", "vertices": quad, "source": {"ifc_type": ["IfcCurtainWall"]}}]})
+    assert [p.tolerance for p in m.planes] == [DEFAULT_TOLERANCE, 0.02, 0.005]
+    assert [p.tolerance for p in parse_plane_map({"tolerance": 0.003, "planes": [{"id": "a", "vertices": quad}]}).planes] \
+        == [0.003]
+    # Saved and loaded again, a tolerance that is not the default for its source is kept.
+    assert parse_plane_map(m.to_yaml_data()).planes[1].tolerance == 0.02
+    with pytest.raises(ConfigError, match="tolerance"):
+        parse_plane_map({"planes": [{"id": "a", "vertices": quad, "tolerance": -0.01}]})
+    # Imported maps get it from their element types; a looser wall counts for more in the covariance.
+    assert {p.tolerance for p in load_plane_map("config/maps/institute_ground.yaml").planes} <= {0.01, 0.02, 0.03}
+    loose = PlaneMap([dataclasses.replace(p, tolerance=0.05) for p in ARENA.planes])
+    fr = frames(SimScene(ARENA), FACING_WEST, seed=1)
+    tight = Localizer(ROBOT, ARENA).localize(fr, FACING_WEST, coarse_covariance(0.02, 0.02))
+    wide = Localizer(ROBOT, loose).localize(fr, FACING_WEST, coarse_covariance(0.02, 0.02))
+    assert math.sqrt(wide.cov[0, 0]) > 2 * math.sqrt(tight.cov[0, 0])

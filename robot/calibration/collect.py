@@ -48,21 +48,34 @@ def observations(result: LocalizationResult, robot: RobotConfig,
         n_C = T[:3, :3].T @ n_R
         d_C = float(rep.d) + float(T[:3, 3] @ n_R)
         K = cam.intrinsics_from_fov()
-        center = (0.0, 0.0)
-        if rep.centroid is not None:  # the inliers' mean point: its depth and where it is in the image
-            p_C = T[:3, :3].T @ (np.asarray(rep.centroid, float) - T[:3, 3])
-            z = float(p_C[2])
-            if z > 0.05:
-                center = (float(np.clip(K[0, 0] * p_C[0] / z / (cam.width / 2.0), -1.5, 1.5)),
-                          float(np.clip(K[1, 1] * p_C[1] / z / (cam.height / 2.0), -1.5, 1.5)))
-        else:
-            z = d_C / max(abs(float(n_C[2])), 0.3)
-        z = max(z, 0.05)
+        center, z = image_center(cam, rep.centroid, n_C, d_C)
         fb = float(K[0, 0]) * D435_BASELINE
         sd, sa = plane_noise(z, rep.inliers, fb, robot.localizer.depth_systematic_px)
         out.append(PlaneObservation(m.camera, m.plane_id, np.asarray(m.n_ground, float), float(m.d_ground), n_C,
                                     d_C, float(cam.depth_scale), (sd, sa, sa), center))
     return out
+
+
+def image_center(cam, centroid_R, n_C: np.ndarray, d_C: float) -> Tuple[Tuple[float, float], float]:
+    """Where a wall's fitted points are in the image ((u, v) from the centre in half-widths and
+    half-heights) and their mean depth (m), from their mean point in the robot frame (``centroid_R``,
+    the localizer's report; None: the optical axis, where the wall crosses it)."""
+    if centroid_R is None:
+        return (0.0, 0.0), max(d_C / max(abs(float(n_C[2])), 0.3), 0.05)
+    T = cam.T_robot_camera
+    K = cam.intrinsics_from_fov()
+    p_C = T[:3, :3].T @ (np.asarray(centroid_R, float) - T[:3, 3])
+    z = float(p_C[2])
+    if z <= 0.05:
+        return (0.0, 0.0), max(d_C / max(abs(float(n_C[2])), 0.3), 0.05)
+    return (float(np.clip(K[0, 0] * p_C[0] / z / (cam.width / 2.0), -1.5, 1.5)),
+            float(np.clip(K[1, 1] * p_C[1] / z / (cam.height / 2.0), -1.5, 1.5))), z
+
+
+def intrinsics_of(cam) -> Tuple[float, float, float, float]:
+    """(f_x, f_y, width, height) of a camera at its configured, full resolution."""
+    K = cam.intrinsics_from_fov()
+    return float(K[0, 0]), float(K[1, 1]), float(cam.width), float(cam.height)
 
 
 def plane_noise(z: float, inliers: int, fx_b: float, systematic_px: float) -> Tuple[float, float]:
@@ -106,8 +119,7 @@ class Collector:
 
     def dataset(self) -> Dataset:
         kfs = [self._keyframes[t] for t in sorted(self._keyframes)]
-        intrinsics = {c.name: (float(c.intrinsics_from_fov()[0, 0]), float(c.intrinsics_from_fov()[1, 1]),
-                               float(c.width), float(c.height)) for c in self.robot.cameras}
+        intrinsics = {c.name: intrinsics_of(c) for c in self.robot.cameras}
         return Dataset(self.layout.cameras, kfs, self.odometry, self.layout.nominal(self.robot), intrinsics,
                        float(self.robot.localizer.depth_systematic_px))
 

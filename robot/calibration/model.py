@@ -221,6 +221,26 @@ def integrate_wheels(steps: np.ndarray, segment: np.ndarray, n_segments: int, od
     return out
 
 
+def disparity_effect(n_C: np.ndarray, d: float, center: Sequence[float],
+                     intrinsics: Tuple[float, float, float, float]) -> Tuple[np.ndarray, np.ndarray]:
+    """What the camera's disparity error terms (``DISPARITY_PARAMS``, px) do to a wall it fits:
+    (6,) to its offset and (3, 6) to its normal, to first order (d' = d + dd . e, n' = n + dn e).
+
+    Near the wall's points (u0, v0) the error field is affine; an affine disparity error e adds
+    e / (f_x b) to the plane's inverse depth q = -n / d along each ray (x/z, y/z, 1), so
+    dq = A (slope_u, slope_v, offset at the optical axis), d' = d + d^2 n . dq and
+    n' = n - d (I - n n^T) dq."""
+    fx, fy, w, h = intrinsics
+    u0, v0 = center
+    T = np.zeros((3, CONSIDER_TERMS))  # (slope_u, slope_v, offset) by the field's terms
+    T[0, 1], T[0, 3], T[0, 4] = 1.0, v0, 2 * u0
+    T[1, 2], T[1, 3], T[1, 5] = 1.0, u0, 2 * v0
+    T[2, 0], T[2, 3], T[2, 4], T[2, 5] = 1.0, -u0 * v0, -u0 * u0, -v0 * v0
+    dq = np.diag([fx / (w / 2.0), fy / (h / 2.0), 1.0]) @ T / (fx * D435_BASELINE)
+    n = np.asarray(n_C, float)
+    return d * d * (n @ dq), -d * (np.eye(3) - np.outer(n, n)) @ dq
+
+
 @dataclass
 class PlaneArrays:
     """The plane observations of a dataset as arrays (one row per observation)."""
@@ -392,17 +412,3 @@ def odometry_residuals(odo: OdometryArrays, poses: np.ndarray, odo_params: np.nd
         d = (integrate_wheels(odo.steps, odo.segment, m, up) - integrate_wheels(odo.steps, odo.segment, m, dn)) / (2 * h)
         Jo[:, :, j] = -d
     return res, (Ja, Jb, Jo)
-
-
-def param_units(name: str) -> str:
-    kind = name.rsplit(".", 1)[1]
-    if kind in ANGLE_PARAMS:
-        return "deg"
-    return "" if kind == "depth_scale" else "m"
-
-
-def index_by_camera(names: Sequence[str]) -> Dict[str, List[int]]:
-    out: Dict[str, List[int]] = {}
-    for i, n in enumerate(names):
-        out.setdefault(n.rsplit(".", 1)[0], []).append(i)
-    return out

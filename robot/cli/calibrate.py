@@ -57,7 +57,9 @@ def register(sub) -> None:
     p.set_defaults(func=cmd_calibrate)
 
 
-def _mount_errors(items, cameras) -> Tuple[Tuple[str, Tuple[float, ...]], ...]:
+def parse_mount_errors(items, cameras) -> Tuple[Tuple[str, Tuple[float, ...]], ...]:
+    """``--mount-error`` values (mm and deg) as ``WorldSettings.mount_errors`` (m and deg); None: the
+    shipped robot's default errors (front 10 mm forward and 0.5 deg left, left 0.5 deg right)."""
     if items is None:
         items = ["front=10,0,0,0,0,0.5", "left=0,0,0,0,0,-0.5"]
         items = [i for i in items if i.split("=")[0] in cameras]
@@ -104,13 +106,14 @@ def _start_pose(args, plane_map) -> Tuple[float, float, float]:
 
 def _collect(args, robot, plane_map):
     """(dataset, truth or None, what was driven)."""
-    from robot.control.calibration_path import plan_calibration_motion
+    from robot.control.calibration_path import clearance_for, plan_calibration_motion
     from robot.sim.calibration_run import collect_recording
 
     if args.recording:
         return collect_recording(args.recording, robot, plane_map), None, f"recording {args.recording}"
     start = _start_pose(args, plane_map)
-    plan = plan_calibration_motion(plane_map, start, speed=min(0.25, robot.control.max_speed))
+    plan = plan_calibration_motion(plane_map, start, speed=min(0.30, robot.control.max_speed),
+                                   clearance=clearance_for(robot))
     if args.sim:
         from drivers.sim.render import resolve_noise
         from drivers.sim.world import WorldSettings
@@ -125,8 +128,13 @@ def _collect(args, robot, plane_map):
             scale = _scale_errors(args.depth_scale_error, names)
         world = WorldSettings(seed=args.seed, depth_noise=resolve_noise(args.noise, scale or None),
                               wheel_radius_error=args.wheel_radius_error,
-                              mount_errors=_mount_errors(args.mount_error, names))
-        col = collect_sim(robot, plane_map, start, RunSettings(world=world, max_time=180.0), plan)
+                              mount_errors=parse_mount_errors(args.mount_error, names))
+        # the simulated robot is the uncalibrated one with the injected errors; the controller runs with
+        # the calibration in effect (which --check then tests)
+        from robot.config import load_robot_config
+
+        bare = load_robot_config(args.robot, calibration="")
+        col = collect_sim(robot, plane_map, start, RunSettings(world=world, max_time=180.0, world_robot=bare), plan)
         if not col.run.finished:
             raise InputError(f"the simulated calibration drive did not complete: {col.run.reason}")
         return col.data, col.truth, f"simulated drive, {col.run.sim_time:.0f} s of motion"
@@ -151,17 +159,18 @@ def _value(name: str, v: float) -> Tuple[float, str]:
 
 
 def _table(result, truth) -> List[str]:
+    layout = result.solution.layout
     head = f"{'parameter':<28} {'configured':>11} {'estimate':>11} {'std':>9} {'unit':<4}  observable"
     if truth is not None:
         head = head.replace("  observable", f" {'truth':>11} {'error':>9}  observable")
     lines = [head, "-" * len(head)]
-    for i, r in enumerate(result.reports):
+    for r in result.reports:
         nom, unit = _value(r.name, r.nominal)
         est, _ = _value(r.name, r.value)
         std = _value(r.name, r.std)[0] if math.isfinite(r.std) else math.nan
         row = f"{r.name:<28} {nom:>11.5f} {est:>11.5f} {std:>9.5f} {unit:<4}"
         if truth is not None:
-            tv, _ = _value(r.name, float(truth[i]))
+            tv, _ = _value(r.name, float(truth[layout.index(r.name)]))
             row += f" {tv:>11.5f} {est - tv:>+9.5f}"
         row += "  " + ("yes" if r.observable else f"NO: {r.reason}")
         lines.append(row)
@@ -188,7 +197,7 @@ def cmd_calibrate(args) -> int:
                         "reason": r.reason} for r in result.reports],
         "noise_factors": sol.group_sigma}
     if truth is not None:
-        doc["truth"] = {n: float(v) for n, v in zip(sol.layout.names, truth)}
+        doc["truth"] = {r.name: float(truth[sol.layout.index(r.name)]) for r in result.reports}
     text: List[str] = [f"Calibration from {what}: {sol.counts['keyframes']} keyframes, "
                        f"{sol.counts['plane_observations']} wall fits, {sol.counts['odometry_intervals']} wheel intervals"]
     text += _table(result, truth)

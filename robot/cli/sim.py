@@ -46,6 +46,12 @@ def register(sub) -> None:
                    help="cameras read depth (1 + E) times too long: one value, or per camera, e.g. front=0.01,left=-0.005")
     p.add_argument("--site", type=int_in(0, 1000), default=0, metavar="N", help="N random construction-site items (default: none)")
     p.add_argument("--as-built", action="store_true", help="walls rendered as built (offset, bowed, out of plumb)")
+    p.add_argument("--mount-error", action="append", default=[], metavar="CAM=DX,DY,DZ,DROLL,DPITCH,DYAW",
+                   help="a camera's true mount minus its configured one (mm and deg; repeatable)")
+    p.add_argument("--wheel-radius-error", type=float_in(-0.1, 0.1), default=0.0, metavar="E",
+                   help="the wheels are (1 + E) times their configured radius (default: 0)")
+    p.add_argument("--online-calibration", action="store_true",
+                   help="the controller estimates depth scales, mounts and wheel radii while it drives")
     p.add_argument("--out-dir", default="sim_out", help="where the PNG figures go (default: %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of the table")
@@ -88,20 +94,23 @@ def cmd_sim(args) -> int:
     scale_error = _scale_errors(args.depth_scale_error, [c.name for c in robot.cameras])
     if args.clutter < 0 or args.site < 0:
         raise ConfigError("--clutter and --site must not be negative")
-    if args.realtime and (args.noise != "realistic" or scale_error or args.site or args.as_built):
-        raise ConfigError("--noise, --depth-scale-error, --site and --as-built apply to the simulated-clock "
-                          "experiment, not to --realtime")
+    if args.realtime and (args.noise != "realistic" or scale_error or args.site or args.as_built or args.mount_error
+                          or args.wheel_radius_error or args.online_calibration):
+        raise ConfigError("--noise, --depth-scale-error, --site, --as-built, --mount-error, --wheel-radius-error and "
+                          "--online-calibration apply to the simulated-clock experiment, not to --realtime")
     if args.realtime:
         from robot.sim.realtime import run_realtime
 
         return run_realtime(robot, plane_map, plan, args)
 
+    from robot.cli.calibrate import parse_mount_errors
     from robot.sim.experiment import format_table, run_experiment
 
-    settings = RunSettings(vision_rate=args.vision_rate, method=args.method,
+    settings = RunSettings(vision_rate=args.vision_rate, method=args.method, online_calibration=args.online_calibration,
                            world=replace(WorldSettings(), decimation=args.decimation, clutter=args.clutter,
                                          depth_noise=resolve_noise(args.noise, scale_error or None), site=args.site,
-                                         as_built=args.as_built))
+                                         as_built=args.as_built, wheel_radius_error=args.wheel_radius_error,
+                                         mount_errors=parse_mount_errors(args.mount_error, [c.name for c in robot.cameras])))
     workers = args.workers or min(os.cpu_count() or 1, 4)
     done = {"n": 0}
     total = args.runs * len(modes)

@@ -163,7 +163,7 @@ def check_cross_section(robot: RobotConfig) -> None:
 
 def parse_robot_config(data, source: str = "<robot config>", calibration=None) -> RobotConfig:
     """The robot config in ``data``, with its calibration applied (``calibration``: a calibration
-    file that replaces the config's own ``calibration:``; robot.config.calibration)."""
+    file that replaces the config's own ``calibration:``, "" for none at all; robot.config.calibration)."""
     top = Section(data, "", source)
     raw_cams = top.raw("cameras")
     if not isinstance(raw_cams, list) or not raw_cams:
@@ -203,7 +203,7 @@ def parse_robot_config(data, source: str = "<robot config>", calibration=None) -
                         fusion=fusion, quality=quality, safety=safety, recovery=recovery, control_api=control_api,
                         fleet=fleet, recording=recording, map_path=map_path, source=source)
     check_cross_section(robot)
-    if calibration is not None:
+    if calibration:
         robot = apply_calibration(robot, load_calibration(calibration))
     return robot
 

@@ -26,12 +26,21 @@ import numpy as np
 
 from robot.base.errors import ConfigError
 from robot.base.geometry import wrap_angle
+from robot.config import RobotConfig
 from robot.control.path_file import PathPlan, StartPose, Waypoint
 from robot.maps.plane_map import PlaneMap
 
 DEFAULT_CLEARANCE = 0.30  # m from a wall to the robot's centre: its half-diagonal (0.14 m) and a margin
 DEFAULT_MAX_DRIVE = 0.45  # m per side of a square
 MIN_DRIVE = 0.08  # m: a shorter drive shows too little to be worth its time
+
+
+def clearance_for(robot: RobotConfig) -> float:
+    """How far from every wall the robot's centre stays: its body, and each camera at least its
+    minimum range plus 5 cm from the wall it faces (nearer, a D435i sees nothing, and the protective
+    stop takes a blinded view for an obstacle at the lens)."""
+    reach = max(math.hypot(c.mount_xyz[0], c.mount_xyz[1]) for c in robot.cameras)
+    return max(DEFAULT_CLEARANCE, reach + robot.localizer.min_range + 0.05)
 
 
 def wall_segments(plane_map: PlaneMap) -> List[Tuple[np.ndarray, np.ndarray]]:
@@ -70,7 +79,7 @@ def free_distance(p: Sequence[float], direction: float, walls, clearance: float,
     return s
 
 
-def plan_calibration_motion(plane_map: PlaneMap, start: Sequence[float], speed: float = 0.25,
+def plan_calibration_motion(plane_map: PlaneMap, start: Sequence[float], speed: float = 0.30,
                             clearance: float = DEFAULT_CLEARANCE, max_drive: float = DEFAULT_MAX_DRIVE,
                             tolerance: float = 0.02, heading_tolerance: float = math.radians(2.0),
                             source: str = "<calibration motion>") -> PathPlan:

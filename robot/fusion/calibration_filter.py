@@ -38,8 +38,16 @@ from typing import Dict, Iterable, List, Optional, Sequence
 import numpy as np
 
 from robot.base.samples import WheelOdometry
-from robot.calibration.collect import Collector
-from robot.calibration.model import CAMERA_PARAMS, ODOMETRY_PARAMS, ParamLayout, camera_rotation
+from robot.calibration.collect import Collector, image_center, intrinsics_of
+from robot.calibration.model import (
+    CAMERA_PARAMS,
+    CONSIDER_TERM_SHARE,
+    DISPARITY_PARAMS,
+    ODOMETRY_PARAMS,
+    ParamLayout,
+    camera_rotation,
+    disparity_effect,
+)
 from robot.calibration.solver import SolveOptions, solve
 from robot.config import RobotConfig
 from robot.localization.localizer import LocalizationResult
@@ -49,12 +57,13 @@ log = logging.getLogger(__name__)
 
 ONLINE_CAMERA_PARAMS = ("depth_scale", "x", "y", "pitch", "yaw")
 STATE_VERSION = 1
+MAX_ODOMETRY_SAMPLES = 20_000  # wheel reports kept while no window closes (200 s at 100 Hz)
 
 
 @dataclass(frozen=True)
 class OnlineSettings:
     window: float = 2.0  # s of keyframes per update
-    min_keyframes: int = 6  # fewer in a window: it is carried into the next one
+    min_keyframes: int = 6  # a window closes only with at least this many keyframes
     keyframe_interval: float = 0.15  # s: localizations closer than this to the last keyframe are skipped
     iterations: int = 4  # Gauss-Newton steps per window (the prior is close: the problem is near linear)
     # Random walk of the states per sqrt(second): slow drifts, and a guard against overconfidence.
@@ -62,6 +71,7 @@ class OnlineSettings:
     walk_position: float = 2e-5  # m/sqrt(s)
     walk_angle: float = math.radians(0.002)  # rad/sqrt(s)
     walk_radius: float = 2e-6  # relative/sqrt(s)
+    walk_disparity: float = 2e-5  # px/sqrt(s)
     # Prior of the wheel states (the cameras' come from the localizer config's error model).
     radius_std: float = 0.02  # relative
     radius_diff_std: float = 0.01  # relative
@@ -84,7 +94,7 @@ class CalibrationFilter:
         cams = [c.name for c in robot.cameras]
         self.layout = ParamLayout(cams)
         self.nominal = self.layout.nominal(robot)
-        self.names = [f"{c}.{p}" for c in cams for p in ONLINE_CAMERA_PARAMS] + \
+        self.names = [f"{c}.{p}" for c in cams for p in ONLINE_CAMERA_PARAMS + DISPARITY_PARAMS] + \
                      [f"odometry.{p}" for p in ODOMETRY_PARAMS]
         self.index = [self.layout.index(n) for n in self.names]
         self.prior_std = self._prior_std()
@@ -111,6 +121,8 @@ class CalibrationFilter:
             if cam == "odometry":
                 r0, L0 = self.nominal[self.layout.odometry_slice][[0, 4]]
                 out.append({"wheel_radius": s.radius_std * r0, "lx_plus_ly": s.l_std * L0}.get(p, s.radius_diff_std * r0))
+            elif p in DISPARITY_PARAMS:  # the camera's disparity error: a nuisance with a physical prior
+                out.append(max(loc.depth_systematic_px * CONSIDER_TERM_SHARE, 1e-6))
             elif p == "depth_scale":
                 out.append(max(loc.depth_scale_std, 1e-4))
             elif p in ("x", "y"):
@@ -127,6 +139,8 @@ class CalibrationFilter:
             cam, p = n.rsplit(".", 1)
             if cam == "odometry":
                 out.append(s.bound_l * L0 if p == "lx_plus_ly" else s.bound_radius * r0)
+            elif p in DISPARITY_PARAMS:
+                out.append(math.inf)
             elif p == "depth_scale":
                 out.append(s.bound_scale)
             elif p in ("x", "y"):
@@ -144,18 +158,25 @@ class CalibrationFilter:
     def std(self) -> np.ndarray:
         return np.sqrt(np.maximum(np.diag(self.cov), 0.0))
 
+    @property
+    def nuisance(self) -> np.ndarray:
+        """The camera's disparity error terms: estimated so the scale is not biased, never reported."""
+        return np.array([n.rsplit(".", 1)[1] in DISPARITY_PARAMS for n in self.names])
+
     def observed(self) -> np.ndarray:
-        """Which states the data so far has observed (its information alone, not the prior's)."""
-        info = self.info_data
-        reg = np.diag(1e-9 / self.prior_std ** 2)
+        """Which states the data so far has observed: its information alone, not the prior's (only
+        the disparity terms keep theirs: they are a physical bound, not a guess). Nuisances: False."""
+        nuis = self.nuisance
+        reg = np.diag(np.where(nuis, 1.0, 1e-9) / self.prior_std ** 2)
         try:
-            C = np.linalg.inv(info + reg)
+            C = np.linalg.inv(self.info_data + reg)
         except np.linalg.LinAlgError:
             return np.zeros(len(self.names), bool)
         sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-        ok = sd <= self.bounds
+        ok = (sd <= self.bounds) & ~nuis
         corr = C / np.outer(np.maximum(sd, 1e-300), np.maximum(sd, 1e-300))
         np.fill_diagonal(corr, 0.0)
+        corr[:, nuis] = 0.0
         ok &= np.max(np.abs(corr), axis=1) < 0.99
         return ok
 
@@ -163,6 +184,10 @@ class CalibrationFilter:
 
     def add_odometry(self, odo: WheelOdometry) -> None:
         self._collector.add_odometry(odo)
+        track = self._collector.odometry
+        if len(track) > MAX_ODOMETRY_SAMPLES:  # no keyframes for a while (vision down): keep only the recent past
+            t_keep = min([odo.t - self.settings.window * 4] + self._collector.keyframe_times())
+            track.drop_before(t_keep)
 
     def add_localization(self, result: LocalizationResult, t_capture: float, accepted: Iterable[str],
                          pose: Sequence[float]) -> bool:
@@ -218,6 +243,8 @@ class CalibrationFilter:
             cam, p = n.rsplit(".", 1)
             if cam == "odometry":
                 q.append(s.walk_radius * (self.nominal[self.layout.index(n)] if p in ("wheel_radius", "lx_plus_ly") else r0))
+            elif p in DISPARITY_PARAMS:
+                q.append(s.walk_disparity)
             elif p == "depth_scale":
                 q.append(s.walk_scale)
             elif p in ("x", "y"):
@@ -261,12 +288,12 @@ class CalibrationFilter:
                 continue
             if m.camera not in geometry:
                 geometry[m.camera] = self._camera_geometry(m.camera)
-            out.append(self._correct_one(m, np.asarray(rep.normal, float), float(rep.d), geometry[m.camera]))
+            out.append(self._correct_one(m, rep, geometry[m.camera]))
         return dataclasses.replace(result, measurements=out)
 
     def _camera_geometry(self, cam: str) -> tuple:
         """Configured and estimated mount of a camera, the rotation's derivatives by the estimated
-        angles, and the rows of the states that belong to it."""
+        angles, its disparity terms, and the rows of the states that belong to it."""
         sl = self.layout.camera_slice(cam)
         p0, p1 = self.nominal[sl], self.theta()[sl]
         R1 = camera_rotation(p1[4:7])
@@ -277,12 +304,22 @@ class CalibrationFilter:
             dn[k] -= 1e-6
             dR[name] = (camera_rotation(up) - camera_rotation(dn)) / 2e-6
         rows = [i for i, n in enumerate(self.names) if n.rsplit(".", 1)[0] == cam]
-        return camera_rotation(p0[4:7]), p0[1:4], p0[0], R1, p1[1:4], p1[0], dR, rows
+        cfg = self.robot.camera(cam)
+        return (camera_rotation(p0[4:7]), p0[1:4], p0[0], R1, p1[1:4], p1[0], dR, rows, p1[len(CAMERA_PARAMS):],
+                cfg, intrinsics_of(cfg))
 
-    def _correct_one(self, m: PlaneMeasurement, n_R: np.ndarray, d_R: float, geo: tuple) -> PlaneMeasurement:
-        R0, t0, S0, R1, t1, S1, dR, rows = geo
-        n_C = R0.T @ n_R
-        d_C = (d_R + float(t0 @ n_R)) * S1 / S0
+    def _correct_one(self, m: PlaneMeasurement, rep, geo: tuple) -> PlaneMeasurement:
+        R0, t0, S0, R1, t1, S1, dR, rows, e, cfg, intr = geo
+        n_R = np.asarray(rep.normal, float)
+        n_m = R0.T @ n_R  # as measured, in the camera frame
+        d_m = float(rep.d) + float(t0 @ n_R)
+        # the camera's disparity error out, then its scale, then the estimated mount
+        center, _ = image_center(cfg, rep.centroid, n_m, d_m)
+        dd, dn_e = disparity_effect(n_m, d_m, center, intr)
+        n_C = n_m - dn_e @ e
+        n_C /= np.linalg.norm(n_C)
+        d0 = d_m - float(dd @ e)
+        d_C = d0 * S1 / S0
         n1 = R1 @ n_C
         z = np.array([d_C - float(t1 @ n1), m.z[1] + math.remainder(math.atan2(n1[1], n1[0]) - m.z[1], 2.0 * math.pi)])
         R = np.asarray(m.R, float)
@@ -295,6 +332,11 @@ class CalibrationFilter:
                     J[0, j] = d_C / S1
                 elif p in ("x", "y"):
                     J[0, j] = -n1["xy".index(p)]
+                elif p in DISPARITY_PARAMS:
+                    k = DISPARITY_PARAMS.index(p)
+                    dn = -R1 @ dn_e[:, k]
+                    J[0, j] = -dd[k] * S1 / S0 - float(t1 @ dn)
+                    J[1, j] = (n1[0] * dn[1] - n1[1] * dn[0]) / h2
                 else:
                     dn = dR[p] @ n_C
                     J[0, j] = -float(t1 @ dn)
@@ -305,10 +347,13 @@ class CalibrationFilter:
     # -- reporting and persistence ----------------------------------------------------------------
 
     def estimates(self) -> List[Dict[str, object]]:
+        """Every reported state (the disparity nuisances left out) with its estimate, std and whether observed."""
         std, obs = self.std(), self.observed()
         out = []
         for i, n in enumerate(self.names):
             p = n.rsplit(".", 1)[1]
+            if p in DISPARITY_PARAMS:
+                continue
             angle = p in ("roll", "pitch", "yaw")
             k = math.degrees(1.0) if angle else 1.0
             out.append({"name": n, "value": float(self.mean[i]) * k, "std": float(std[i]) * k,

@@ -52,6 +52,8 @@ from robot.base.geometry import wrap_angle
 # Which directions are observable is decided in (x, y, phi) with 1 rad counted as 1 m.
 UNOBSERVED_VARIANCE = 1.0  # m^2 or rad^2 floor for a direction no plane constrains
 CAMERA_PARAMS = 7  # depth scale, mount position (3), mount angles (3)
+_EYE3 = np.eye(3)
+_FLOOR3 = _EYE3 * 1e-14  # keeps a plane's own covariance invertible where a row is (nearly) exact
 PLANE_PARAMS = 3  # offset along the normal, turn about the vertical, out of plumb
 
 
@@ -106,38 +108,35 @@ def observation(plane_id: str, camera: str, n_ground: np.ndarray, d_ground: floa
     """The measurement of one fitted plane (see the module docstring), or None for a plane whose
     normal is too close to vertical to have a heading (it says nothing about x, y, phi).
 
-    ``J_fit``: d y / d (fit's theta1, theta2, d_C); ``own_extra``: (3, 3) per-plane systematic
-    covariance (disparity wave, unexplained scatter); ``own_unweighted``: more of it that the
-    estimate does not weight by (the wall's local shape); ``lever_ground``: robot position minus
-    the fitted patch's centre in G (a turned wall moves its offset by the turn times that lever
-    along the wall)."""
-    n = np.asarray(n_robot, float)
-    h2 = n[0] ** 2 + n[1] ** 2
-    if h2 < 0.3**2 or math.hypot(n_ground[0], n_ground[1]) < 0.3:
+    ``J_fit``: d y / d (fit's theta1, theta2, d_C); ``own_extra``: (3, 3) error of this plane alone
+    that its fit shows (scatter beyond the noise model), weighted by like pixel noise;
+    ``own_unweighted``: errors of this plane alone that are there whatever the fit shows (the
+    matcher's systematic error, the built wall's local shape), in the covariance only;
+    ``lever_ground``: robot position minus the fitted patch's centre in G (a turned wall moves its
+    offset by the turn times that lever along the wall)."""
+    n0, n1, n2 = float(n_robot[0]), float(n_robot[1]), float(n_robot[2])
+    h2 = n0 * n0 + n1 * n1
+    g0, g1, g2 = float(n_ground[0]), float(n_ground[1]), float(n_ground[2])
+    gh = math.hypot(g0, g1)
+    if h2 < 0.3**2 or gh < 0.3:
         return None
-    psi = math.atan2(n[1], n[0])
-    tilt = math.asin(float(np.clip(n[2], -1.0, 1.0)))
-    y = np.array([d_robot, psi, tilt])
-    H = np.array([[n_ground[0], n_ground[1], 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
-    h0 = np.array([d_ground, math.atan2(n_ground[1], n_ground[0]), math.asin(float(np.clip(n_ground[2], -1.0, 1.0)))])
+    y = np.array([d_robot, math.atan2(n1, n0), math.asin(max(-1.0, min(1.0, n2)))])
+    H = np.array([[g0, g1, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
+    h0 = np.array([d_ground, math.atan2(g1, g0), math.asin(max(-1.0, min(1.0, g2)))])
     R_weight = J_fit @ fit_cov @ J_fit.T * inflation + own_extra
     R_own = R_weight if own_unweighted is None else R_weight + own_unweighted
     # Camera: the depth scale stretches d_C; a mount offset dt moves d_R by dt . n; a mount turn
-    # dtheta (robot frame) turns the measured normal by n x dtheta and moves d_R by (n x t) . dtheta.
-    g_psi = np.array([-n[1], n[0], 0.0]) / h2
-    g_tilt = np.array([0.0, 0.0, 1.0 / max(math.sqrt(max(1.0 - n[2] ** 2, 0.0)), 1e-6)])
-    N = np.array([[0.0, -n[2], n[1]], [n[2], 0.0, -n[0]], [-n[1], n[0], 0.0]])  # [n]x
-    t = np.asarray(t_robot_camera, float)
-    G_cam = np.zeros((3, CAMERA_PARAMS))
-    G_cam[0, 0] = d_camera
-    G_cam[0, 1:4] = n
-    G_cam[0, 4:7] = (n[1] * t[2] - n[2] * t[1], n[2] * t[0] - n[0] * t[2], n[0] * t[1] - n[1] * t[0])
-    G_cam[1, 4:7] = g_psi @ N
-    G_cam[2, 4:7] = g_tilt @ N
+    # dtheta (robot frame) turns the measured normal by n x dtheta, so psi by (n2 n0, n2 n1, -h2) / h2
+    # . dtheta and the elevation by (-n1, n0, 0) / sqrt(h2) . dtheta, and moves d_R by (n x t) . dtheta.
+    t0, t1, t2 = (float(v) for v in t_robot_camera)
+    hs = math.sqrt(h2)
+    G_cam = np.array([
+        [d_camera, n0, n1, n2, n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0],
+        [0.0, 0.0, 0.0, 0.0, n2 * n0 / h2, n2 * n1 / h2, -1.0],
+        [0.0, 0.0, 0.0, 0.0, -n1 / hs, n0 / hs, 0.0]])
     # Plane: built off the drawing by an offset, turned about the vertical through the patch, out of plumb.
-    nxy = np.asarray(n_ground[:2], float) / math.hypot(n_ground[0], n_ground[1])
-    along = np.array([-nxy[1], nxy[0]])
-    G_pl = np.array([[-1.0, float(along @ lever_ground), 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    lever_along = (-g1 * float(lever_ground[0]) + g0 * float(lever_ground[1])) / gh
+    G_pl = np.array([[-1.0, lever_along, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     tol = max(float(tolerance), 0.0)
     plane_std = np.array([tol, tol / max(wall_length, 1.0), tol / max(height, 1.0)])
     return Observation(plane_id, camera, y, H, h0, R_own, R_weight, G_cam, G_pl, plane_std)
@@ -226,7 +225,7 @@ class Stack:
             sig[c:c + CAMERA_PARAMS] = cam_std
             sig[p:p + PLANE_PARAMS] = np.maximum(sig[p:p + PLANE_PARAMS], o.plane_std)
         self.H_blocks = np.array([o.H for o in self.obs]) if m else np.zeros((0, 3, 3))
-        self.W_own = np.array([np.linalg.inv(o.R_weight + np.eye(3) * 1e-14) for o in self.obs]) if m else np.zeros((0, 3, 3))
+        self.W_own = np.linalg.inv(np.array([o.R_weight for o in self.obs]) + _FLOOR3) if m else np.zeros((0, 3, 3))
         self.G_sys = G * sig
         self.R_sys = self.G_sys @ self.G_sys.T
         self.R = R + self.R_sys
@@ -298,7 +297,7 @@ class Stack:
         HtW = HtW.transpose(0, 2, 1, 3).reshape(B, 3, 3 * m)
         T = V.transpose(0, 2, 1) @ (HtW @ H) @ V
         keep = obs[:, :, None] & obs[:, None, :]
-        Ti = np.linalg.inv(np.where(keep, T, 0.0) + np.eye(3) * (~obs)[:, None, :]) * keep
+        Ti = np.linalg.inv(np.where(keep, T, 0.0) + _EYE3 * (~obs)[:, None, :]) * keep
         A = V @ Ti @ V.transpose(0, 2, 1) @ HtW  # gain over all rows (0 outside the subset): dx = A r
         dx = (A @ r[:, :, None])[:, :, 0]
         P = A @ self.R @ A.transpose(0, 2, 1)

@@ -516,25 +516,28 @@ class Localizer:
         h_R = np.array([-n[1], n[0], 0.0]) / max(math.hypot(n[0], n[1]), 1e-9)
         v_R = cross(n, h_R)
         length, height = self._plane_extent(plane_index)
-        own = np.zeros((3, 3))
-        own[0, 0] = sd2 + fit.excess_var
-        turns = []
-        for k, (u, spread) in enumerate(((h_R, fit.lateral_std), (v_R, fit.vertical_std)), start=1):
-            g = np.zeros(3)
-            g[0], g[k] = -float(u @ c_R), 1.0
-            turns.append(g)
-            own += (sd2 + fit.excess_var) / max(math.sqrt(3.0) * spread, 0.1) ** 2 * np.outer(g, g)
-        # A built wall is not flat to its tolerance only in offset: bowed or wavy, its local
-        # direction where this camera looks differs from where another looks (about twice the
-        # tolerance over the wall's length, over at least 4 m). A calibrated camera still sees the
-        # matcher's errors, but the wall's may be anything the tolerance allows: they count in the
-        # covariance, not in the weights.
+        # Two parts: scatter the fit itself shows (weighted by, as pixel noise is), and errors that
+        # are there whatever this frame shows (in the covariance only). The matcher's systematic
+        # error is a fixed pattern over each camera's image, so it is not what sets one plane's
+        # weight against another's; a built wall's shape, bowed or wavy, turns its local direction
+        # where this camera looks by about twice its tolerance over its length (at least 4 m).
         slope = 2.0 * plane.tolerance / max(length, 4.0)
-        as_built = slope * slope * np.outer(turns[0], turns[0])
+        ex = fit.excess_var
+        l1, l2 = -float(h_R @ c_R), -float(v_R @ c_R)  # d_R per unit turn about the vertical, the horizontal
+        q1 = 1.0 / max(math.sqrt(3.0) * fit.lateral_std, 0.1) ** 2
+        q2 = 1.0 / max(math.sqrt(3.0) * fit.vertical_std, 0.1) ** 2
+
+        def turns(offset2: float, w1: float, w2: float) -> np.ndarray:
+            # offset2 along d_R, plus turns of variance w1 (psi) and w2 (tilt) about the patch centre.
+            return np.array([[offset2 + w1 * l1 * l1 + w2 * l2 * l2, w1 * l1, w2 * l2],
+                             [w1 * l1, w1, 0.0], [w2 * l2, 0.0, w2]])
+
+        seen = turns(ex, ex * q1, ex * q2)
+        unseen = turns(sd2, sd2 * q1 + slope * slope, sd2 * q2)
         centre = T_ground_robot[:3, :3] @ c_R + T_ground_robot[:3, 3]
         return observation(plane.id, obs.camera, plane.normal, plane.d, obs.n_robot, obs.d_robot, fit.d_camera, t_rc,
-                           obs.J_fit, fit.cov, inflation, own, plane.tolerance, length, height,
-                           T_ground_robot[:2, 3] - centre[:2], as_built)
+                           obs.J_fit, fit.cov, inflation, seen, plane.tolerance, length, height,
+                           T_ground_robot[:2, 3] - centre[:2], unseen)
 
     def _plane_extent(self, plane_index: int) -> Tuple[float, float]:
         """(horizontal length, height) of a map plane, m."""

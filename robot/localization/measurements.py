@@ -28,7 +28,11 @@ class PlaneMeasurement:
     n_ground: np.ndarray  # (3,) map plane normal in G
     d_ground: float
     z: np.ndarray  # (2,) [d_R (m), psi_R (rad)]
-    R: np.ndarray  # (2, 2) covariance of z
+    # (2, 2) covariance of z: pixel noise and the systematic errors (depth scale, mount, the wall as
+    # built; robot/localization/integrity.py). Those are the same in every frame of this camera and
+    # wall, so a filter that averages them over frames gets too confident: the quality monitor adds
+    # the localization's systematic covariance back to its protection levels.
+    R: np.ndarray
     inliers: int = 0
 
     def predict(self, x: float, y: float, phi: float) -> np.ndarray:

@@ -60,6 +60,7 @@ _TABLE = np.random.default_rng(20240611).random((3, _TABLE_SIZE))
 # below it. Three points of one surface are far likelier near each other than anywhere.
 LOCAL_STEP = 0.08
 SURFACE_REFINE_STEPS = 1
+_RIDGE = np.eye(3) * 1e-12
 
 
 @dataclass(frozen=True)
@@ -351,34 +352,87 @@ def _tilt(up: Optional[np.ndarray], n: np.ndarray, n_pred: np.ndarray) -> float:
     return abs(math.asin(float(np.clip(up @ n, -1.0, 1.0))) - math.asin(float(np.clip(up @ n_pred, -1.0, 1.0))))
 
 
-def _behind(sub: _Subsample, n: np.ndarray, d: float, params: FitParams) -> float:
-    """Share of the subsample lying behind the plane (n, d) by more than the margin."""
-    return _behind_points(sub.rx, sub.ry, sub.z, n, d, params)
+def _behind(sub: _Subsample, n: np.ndarray, d: float, pi_pred: np.ndarray, params: FitParams) -> float:
+    """Share of the subsample lying behind the plane (n, d) by more than the margin, where the
+    prior could still put the wall."""
+    return _behind_points(sub.rx, sub.ry, sub.z, n, d, pi_pred, params, params.rear_fraction)
 
 
-def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, params: FitParams) -> float:
+def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, pi_pred: np.ndarray,
+                   params: FitParams, matters: float) -> float:
+    """Share of the points behind the plane (n, d); a share under ``matters`` is returned as it is.
+
+    Depth farther than the window the prior admits for the wall is not counted: with the pose
+    off, a ROI reaches past the wall's top or end to whatever lies far behind it, which says where
+    the wall ends, not that the surface in front is clutter (the window evidence weighs that)."""
     nr = n[0] * rx + n[1] * ry + n[2]
     hit = nr < -1e-9  # rays that meet the plane in front of the camera
     z_plane = np.where(hit, -d / np.where(hit, nr, -1.0), 1e3)
     margin = np.maximum(3.0 * depth_sigma(z_plane, params), params.behind_margin)
-    return float(np.count_nonzero(hit & (z > z_plane + margin))) / max(len(z), 1)
+    behind = hit & (z > z_plane + margin)
+    m = max(len(z), 1)
+    if np.count_nonzero(behind) < matters * m:
+        return float(np.count_nonzero(behind)) / m
+    P = np.vstack([rx * z, ry * z, z])
+    o, W = _window(P, depth_sigma(z, params), pi_pred, params)
+    behind &= o <= W
+    share = float(np.count_nonzero(behind)) / m
+    # What is behind must be a surface: flying pixels where the wall's own edge meets what lies
+    # far behind it (the ROI reaches past its top or end when the pose is off) scatter between
+    # the two, and say nothing about the wall.
+    if share >= matters and not _one_surface(rx[behind], ry[behind], z[behind], params):
+        return 0.0
+    return share
+
+
+def _one_surface(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, params: FitParams) -> bool:
+    """Whether a plane holds half of these points or more (least squares in inverse depth,
+    trimmed to the inlier band and refitted), rather than their depths scattering."""
+    if len(z) < 3:
+        return False
+    if len(z) > 300:  # evenly thinned: enough to tell a plane from scatter
+        k = -(-len(z) // 300)
+        rx, ry, z = rx[::k], ry[::k], z[::k]
+    y = 1.0 / z
+    A = np.vstack([rx, ry, np.ones(len(z))])
+    c = params.sigma_k * params.noise_subpixel / params.noise_fx_b
+    keep = np.ones(len(z), bool)
+    for _ in range(3):
+        Ak = A[:, keep]
+        try:
+            q = np.linalg.solve(Ak @ Ak.T + _RIDGE, Ak @ y[keep])
+        except np.linalg.LinAlgError:
+            return False
+        yp = q @ A
+        keep = np.abs(y - yp) < np.maximum(c, yp * yp * params.min_threshold)
+        if int(np.count_nonzero(keep)) < 3:
+            return False
+    return float(np.count_nonzero(keep)) >= 0.5 * len(z)
+
+
+def _window(P: np.ndarray, sigma: np.ndarray, pi_pred: np.ndarray, params: FitParams) -> Tuple[np.ndarray, np.ndarray]:
+    """Each point's offset behind the predicted plane (m; negative: in front) and the largest
+    offset the prior admits for the wall at that point: the offset gate, widened by what the
+    normal gates let the plane turn at the point's distance from the camera's foot on it, and the
+    depth noise."""
+    n, d = pi_pred[:3], float(pi_pred[3])
+    o = -(n @ P + d)
+    if params.up is not None:
+        h = unit(cross(params.up, n))
+        v = cross(n, h)
+        width = (np.abs(h @ P) * math.tan(min(params.angle_gate, math.radians(80.0)))
+                 + np.abs(v @ P) * math.tan(min(params.tilt_gate, math.radians(80.0))))
+    else:
+        lateral = np.linalg.norm(P - np.outer(n, n @ P), axis=0)
+        width = lateral * math.tan(min(params.angle_gate, math.radians(80.0)))
+    return o, params.offset_gate + width + np.maximum(3.0 * sigma, params.behind_margin)
 
 
 def _window_evidence(sub: _Subsample, pi_pred: np.ndarray, params: FitParams) -> Tuple[str, str]:
     """Where the ROI's depth lies relative to the offsets the prior admits for the wall: a point's
     offset from the predicted plane against the gate, widened by what the normal gates let the
     plane turn at the point's distance from the camera's foot on it."""
-    n, d = pi_pred[:3], float(pi_pred[3])
-    o = -(n @ sub.P + d)  # > 0: behind the predicted plane
-    if params.up is not None:
-        h = unit(cross(params.up, n))
-        v = cross(n, h)
-        width = (np.abs(h @ sub.P) * math.tan(min(params.angle_gate, math.radians(80.0)))
-                 + np.abs(v @ sub.P) * math.tan(min(params.tilt_gate, math.radians(80.0))))
-    else:
-        lateral = np.linalg.norm(sub.P - np.outer(n, n @ sub.P), axis=0)
-        width = lateral * math.tan(min(params.angle_gate, math.radians(80.0)))
-    W = params.offset_gate + width + np.maximum(3.0 * sub.sigma, params.behind_margin)
+    o, W = _window(sub.P, sub.sigma, pi_pred, params)
     m = max(len(o), 1)
     behind, front = np.count_nonzero(o > W) / m, np.count_nonzero(o < -W) / m
     if behind >= params.evidence_fraction:
@@ -417,7 +471,7 @@ def identify(sub: _Subsample, pi_pred: np.ndarray, params: FitParams) -> _Identi
     if len(adm) == 1 and len(surfaces) == 1:
         return _Identification(adm[0], "ok", "", 1)  # nothing else in the ROI: the dense check decides
     for s in adm:
-        s.behind = _behind(sub, s.n, s.d, params)
+        s.behind = _behind(sub, s.n, s.d, pi_pred, params)
     if not adm:
         # A large surface facing the way the wall does, only at an offset the prior does not admit:
         # the wall is there, not where the pose says.
@@ -452,14 +506,14 @@ def identify(sub: _Subsample, pi_pred: np.ndarray, params: FitParams) -> _Identi
 
 
 def _rear_most_dense(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, params: FitParams,
-                     d_pred: float) -> Optional[str]:
+                     pi_pred: np.ndarray) -> Optional[str]:
     """Why the chosen surface is not the rear-most thing of the ROI on a denser sample (None: it is)."""
     k = max(1, -(-len(z) // (2 * params.sample)))
-    b = _behind_points(rx[::k], ry[::k], z[::k], n, d, params)
+    b = _behind_points(rx[::k], ry[::k], z[::k], n, d, pi_pred, params, params.rear_fraction_dense)
     if b < params.rear_fraction_dense:
         return None
     return (f"{100 * b:.1f} % of the ROI lies behind the rear-most surface the prior admits "
-            f"({1000 * (d - d_pred):+.0f} mm from the prediction): it is clutter in front of the wall, and too little "
+            f"({1000 * (d - float(pi_pred[3])):+.0f} mm from the prediction): it is clutter in front of the wall, and too little "
             "of the wall itself is visible to fit")
 
 
@@ -511,7 +565,7 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     n, d = -q / qn, 1.0 / qn
     # Nothing of a wall's ROI lies behind it: checked on more points than identification saw, with
     # the plane fitted to all of them.
-    why = _rear_most_dense(rx, ry, z, n, d, params, d_pred)
+    why = _rear_most_dense(rx, ry, z, n, d, params, pi_pred)
     if why is not None:
         if start is not None:  # the last pass's surface is not the rear-most one here: identify afresh
             return fit_plane(rx, ry, z, pi_pred, params)
@@ -562,7 +616,8 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     a, b = h @ P_in, v @ P_in
     lateral = math.sqrt(max(float(a @ a) / k_in - (float(a.sum()) / k_in) ** 2, 0.0))
     vertical = math.sqrt(max(float(b @ b) / k_in - (float(b.sum()) / k_in) ** 2, 0.0))
-    why = _not_flat(P_in, a, n, d, z2, params)
+    # (A surface kept from the last pass was checked there, on an overlapping ROI.)
+    why = _not_flat(P_in, a, n, d, z2, params) if start is None else None
     if why is not None:
         return PlaneFit(False, why, n, d, count, angle_to_prediction=ang, offset_to_prediction=off, surfaces=surfaces)
     if up is not None:
@@ -595,22 +650,25 @@ def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: 
     if k < 40:
         return None
     res = n @ P_in + d  # signed distance of each inlier from the plane
-    cut = float(np.median(along))
-    slopes, spreads, counts = [], [], []
-    for side in (along <= cut, along > cut):
-        a, r = along[side], res[side]
-        va = float(a.var())
-        if len(a) < 20 or va <= 1e-8:
-            return None
-        slopes.append(float(((a - a.mean()) * r).mean()) / va)
-        spreads.append(math.sqrt(va))
-        counts.append(len(a))
+    a = along - float(np.median(along))  # halves of equal support: a wedge turns them against each other
+    side = (a > 0).astype(np.intp)
+    # Per half: count and the sums a least-squares slope needs, in one pass each.
+    cnt = np.bincount(side, minlength=2).astype(float)
+    sa, sr = np.bincount(side, a, 2), np.bincount(side, res, 2)
+    saa, sar = np.bincount(side, a * a, 2), np.bincount(side, a * res, 2)
+    if cnt.min() < 20:
+        return None
+    var = saa / cnt - (sa / cnt) ** 2
+    if var.min() <= 1e-8:
+        return None
+    slopes = (sar / cnt - sa * sr / (cnt * cnt)) / var
+    spreads, counts = np.sqrt(var), cnt
     sigma = float(depth_sigma(np.array([math.sqrt(z2)]), params)[0]) * abs(float(n[2]))
     sys_z = params.systematic_px / params.noise_fx_b * z2 * abs(float(n[2]))
     # Samples are several matcher windows apart: nearly independent (allow 1.5 times their spread).
     noise = math.hypot(*(1.5 * sigma / (math.sqrt(c) * sp) for c, sp in zip(counts, spreads)))
-    allowed = FLAT_SLOPE + 3.0 * noise + 2.0 * sys_z / max(min(spreads), 0.05)
-    turn = abs(math.atan(slopes[0]) - math.atan(slopes[1]))
+    allowed = FLAT_SLOPE + 3.0 * noise + 2.0 * sys_z / max(float(spreads.min()), 0.05)
+    turn = abs(math.atan(float(slopes[0])) - math.atan(float(slopes[1])))
     if turn <= allowed:
         return None
     return (f"not one flat surface: its two halves along the wall turn {math.degrees(turn):.1f} deg against each "

@@ -24,7 +24,7 @@ from robot.calibration.collect import Collector
 from robot.calibration.model import Dataset, ParamLayout
 from robot.config import RobotConfig
 from robot.config.calibration import calibrated_frame
-from robot.control.calibration_path import plan_calibration_motion
+from robot.control.calibration_path import clearance_for, plan_calibration_motion
 from robot.control.path_file import PathPlan
 from robot.localization.localizer import Localizer
 from robot.maps.plane_map import PlaneMap
@@ -60,7 +60,7 @@ class SimCollection:
 
 def true_parameters(robot: RobotConfig, plane_map: PlaneMap, start: Sequence[float], settings: RunSettings) -> np.ndarray:
     """The parameter vector (``ParamLayout`` order) of the robot the simulated world really has."""
-    world = SimWorld(robot, plane_map, start, settings.world)
+    world = SimWorld(settings.world_robot or robot, plane_map, start, settings.world)
     layout = ParamLayout([c.name for c in robot.cameras])
     theta = layout.nominal(world.true_robot)
     noise = settings.world.depth_noise
@@ -80,7 +80,8 @@ def true_parameters(robot: RobotConfig, plane_map: PlaneMap, start: Sequence[flo
 def collect_sim(robot: RobotConfig, plane_map: PlaneMap, start: Sequence[float], settings: RunSettings,
                 plan: Optional[PathPlan] = None) -> SimCollection:
     """Drive the calibration motion (or ``plan``) in the simulated world and keep its data."""
-    plan = plan or plan_calibration_motion(plane_map, start, speed=min(0.15, robot.control.max_speed))
+    plan = plan or plan_calibration_motion(plane_map, start, speed=min(0.30, robot.control.max_speed),
+                                           clearance=clearance_for(robot))
     tap = _Tap(robot)
     run = run_path(robot, plane_map, plan, settings, tap=tap)
     return SimCollection(tap.collector.dataset(), true_parameters(robot, plane_map, start, settings), run, plan)

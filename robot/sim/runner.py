@@ -50,6 +50,7 @@ class RunSettings:
     trace_rate: float = 10.0  # Hz, trajectory samples kept for plots
     world: WorldSettings = field(default_factory=WorldSettings)
     online_calibration: bool = False  # estimate depth scales, mounts and wheel radii while driving (fusion.calibration_filter)
+    world_robot: Optional[RobotConfig] = None  # the simulated robot itself, if not the config the controller runs with
     # (t, x, y, phi): at simulated time t the robot is carried to (x, y, phi) without its wheels
     # turning (the kidnapped robot).
     kidnap_at: Optional[Tuple[float, float, float, float]] = None
@@ -146,7 +147,7 @@ class _PathRun:
     def __init__(self, robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, settings: RunSettings) -> None:
         self.robot, self.plan, self.settings = robot, plan, settings
         start = (plan.start.x, plan.start.y, plan.start.heading)
-        self.world = SimWorld(robot, plane_map, start, settings.world)
+        self.world = SimWorld(settings.world_robot or robot, plane_map, start, settings.world)
         self.faults = settings.faults
         board = self.world.board if self.faults is None else FaultyLine(self.world.board, self.faults, lambda: self.now_us / _US)
         chassis = LoopbackChassis(board, robot.chassis)
