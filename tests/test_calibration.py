@@ -358,16 +358,17 @@ def test_one_wall_cannot_separate_a_depth_scale_from_a_position():
 
 
 def test_parallel_walls_show_no_motion_along_them():
-    """A corridor, driven along only: the walls' separation gives each camera's scale, but nothing
-    shows how far the robot went, nor where along the walls a camera sits."""
+    """A corridor, driven along only: nothing shows how far the robot went, nor where along the
+    walls a camera sits. (The walls' known separation still ties each camera's scale, up to the
+    camera's disparity error, which two distances cannot separate from it well.)"""
     truth = truth_vector(**INJECTED)
     _, res = batch(truth, CORRIDOR, start=(0.0, 0.0, 0.0), segments=calibration_drive(turn=False, along_only=True))
     assert not res.report("odometry.wheel_radius").observable
     assert not res.report("front.x").observable and not res.report("left.x").observable
     cal, _ = to_calibration(res, ROBOT)
     assert cal.odometry.wheel_radius is None
-    assert res.report("front.depth_scale").observable  # two walls a known distance apart
-    assert abs(err(res, truth, "front.depth_scale")) < 4 * res.report("front.depth_scale").std
+    scale = res.report("front.depth_scale")
+    assert abs(err(res, truth, "front.depth_scale")) < 3 * scale.std < 0.005  # estimated, not invented
 
 
 def test_no_motion_observes_neither_wheels_nor_where_the_cameras_sit_on_the_robot():

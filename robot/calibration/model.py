@@ -50,9 +50,16 @@ WHEEL_DIFFS = np.array([[-1.0, -1.0, 1.0], [1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [
 ANGLE_PARAMS = ("roll", "pitch", "yaw")
 D435_BASELINE = 0.050  # m, the stereo baseline behind the systematic depth error
 CONSIDER_TERMS = 6  # terms of the disparity error field (DISPARITY_PARAMS)
-# Each term's RMS over the image, per unit of the field's RMS: uniform u, v in [-1, 1] give the six
-# terms a summed variance of 1 + 1/3 + 1/3 + 1/9 + 1/5 + 1/5 = 2.18 times one term's.
-CONSIDER_TERM_SHARE = 1.0 / math.sqrt(2.18)
+# Prior std of each term in units of the field's RMS (``LocalizerConfig.depth_systematic_px``): the
+# offset is the field's RMS; a smooth field of about one cycle per image width changes by about
+# 2.5 times its RMS over a half-width, so the slopes and second-order terms get that. Tighter, the
+# walls' tilt from a slope is taken for a mount pitch.
+DISPARITY_PRIOR_FACTORS = (1.0, 2.5, 2.5, 2.5, 2.5, 2.5)
+
+
+def disparity_prior_std(systematic_px: float) -> np.ndarray:
+    """(6,) prior standard deviations (px) of the disparity terms for a field of ``systematic_px`` RMS."""
+    return np.maximum(np.asarray(DISPARITY_PRIOR_FACTORS) * float(systematic_px), 1e-6)
 
 
 @dataclass

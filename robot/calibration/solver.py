@@ -26,13 +26,13 @@ from robot.base.geometry import wrap_angle
 from robot.calibration.model import (
     CAMERA_BLOCK,
     CAMERA_PARAMS,
-    CONSIDER_TERM_SHARE,
     DISPARITY_PARAMS,
     ODOMETRY_PARAMS,
     Dataset,
     OdometryArrays,
     ParamLayout,
     PlaneArrays,
+    disparity_prior_std,
     odometry_residuals,
     plane_residuals,
 )
@@ -50,9 +50,9 @@ def default_prior_std(nominal: np.ndarray, layout: ParamLayout, systematic_px: f
     out = np.zeros(len(layout))
     per_cam = {"depth_scale": 0.05, "x": 0.05, "y": 0.05, "z": 0.05, "roll": math.radians(5.0),
                "pitch": math.radians(5.0), "yaw": math.radians(5.0)}
-    term = max(systematic_px * CONSIDER_TERM_SHARE, 1e-6)
+    terms = list(disparity_prior_std(systematic_px))
     for c in layout.cameras:
-        out[layout.camera_slice(c)] = [per_cam[p] for p in CAMERA_PARAMS] + [term] * len(DISPARITY_PARAMS)
+        out[layout.camera_slice(c)] = [per_cam[p] for p in CAMERA_PARAMS] + terms
     r0, L0 = nominal[layout.odometry_slice][[0, 4]]
     out[layout.odometry_slice] = [0.1 * r0, 0.05 * r0, 0.05 * r0, 0.05 * r0, 0.2 * L0]
     return out

@@ -41,12 +41,12 @@ from robot.base.samples import WheelOdometry
 from robot.calibration.collect import Collector, image_center, intrinsics_of
 from robot.calibration.model import (
     CAMERA_PARAMS,
-    CONSIDER_TERM_SHARE,
     DISPARITY_PARAMS,
     ODOMETRY_PARAMS,
     ParamLayout,
     camera_rotation,
     disparity_effect,
+    disparity_prior_std,
 )
 from robot.calibration.solver import SolveOptions, solve
 from robot.config import RobotConfig
@@ -122,7 +122,7 @@ class CalibrationFilter:
                 r0, L0 = self.nominal[self.layout.odometry_slice][[0, 4]]
                 out.append({"wheel_radius": s.radius_std * r0, "lx_plus_ly": s.l_std * L0}.get(p, s.radius_diff_std * r0))
             elif p in DISPARITY_PARAMS:  # the camera's disparity error: a nuisance with a physical prior
-                out.append(max(loc.depth_systematic_px * CONSIDER_TERM_SHARE, 1e-6))
+                out.append(float(disparity_prior_std(loc.depth_systematic_px)[DISPARITY_PARAMS.index(p)]))
             elif p == "depth_scale":
                 out.append(max(loc.depth_scale_std, 1e-4))
             elif p in ("x", "y"):
