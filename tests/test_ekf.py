@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from robot.base.geometry import wrap_angle
+from robot.base.stats import chi2_quantile as chi2_threshold
 from robot.config import FilterConfig
-from robot.fusion.ekf import PoseFilter, body_increment, chi2_threshold
+from robot.fusion.ekf import PoseFilter, body_increment
 from robot.localization.measurements import PlaneMeasurement
 
 # The paper arena's walls as (id, n_G, d_G), normals facing inward (config/maps/paper_arena.yaml).

@@ -34,10 +34,10 @@ from robot.app.controller import AppOptions, RobotApp
 from robot.base import frames as base_frames
 from robot.base.frames import FrameCheck, frame_problem
 from robot.base.samples import DepthFrame, WheelOdometry
+from robot.base.stats import chi2_quantile as chi2_threshold
 from robot.config import load_robot_config
 from robot.control.core import ControllerCore
 from robot.control.path_file import parse_path
-from robot.fusion.ekf import chi2_threshold
 from robot.maps.plane_map import load_plane_map
 from robot.recording import snapshot
 from robot.sim.faults import FUTURE_FRAME, NAN_FRAME, FaultPlan

@@ -15,7 +15,7 @@ import logging
 from pathlib import Path
 from typing import Optional, Tuple
 
-from robot.app.pose_store import _atomic_write
+from robot.base.files import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -36,7 +36,7 @@ class CalibrationStore:
             log.warning("not saving a non-finite calibration state to %s", self.path)
             return False
         try:
-            _atomic_write(self.path, text)
+            atomic_write_text(self.path, text)
         except OSError as e:
             log.warning("cannot save the calibration state to %s: %s", self.path, e)
             return False

@@ -18,13 +18,13 @@ import datetime
 import json
 import logging
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple
 
 import numpy as np
+
+from robot.base.files import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +71,7 @@ class PoseStore:
             "saved_at": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         }
         try:
-            _atomic_write(self.path, json.dumps(data, indent=1) + "\n")
+            atomic_write_text(self.path, json.dumps(data, indent=1) + "\n")
         except OSError as e:
             log.warning("cannot save the pose to %s: %s", self.path, e)
             return False
@@ -126,29 +126,3 @@ def _parse(data) -> Tuple[Optional[StoredPose], str]:
     return StoredPose(vals[0], vals[1], vals[2], cov, map_name, saved_at), ""
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, str(path))
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    # The rename itself must reach the disk too.
-    try:
-        dir_fd = os.open(str(path.parent), os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(dir_fd)
-    except OSError:
-        pass
-    finally:
-        os.close(dir_fd)

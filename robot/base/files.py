@@ -208,3 +208,33 @@ def check_writable_directory(directory: PathLike, what: str = "output directory"
 __all__ = ["FileKind", "CONFIG", "PATH_FILE", "CALIBRATION", "MAP", "SNAPSHOT", "RECORDING", "IFC", "KINDS",
            "check_regular_file", "open_regular_file", "read_bytes", "read_text", "check_writable_file",
            "check_writable_directory", "format_size"]
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` so that a reader (or a power cut) sees the old file or the new one,
+    never half of one: a temporary file beside it, fsync, rename, fsync of the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=str(path.parent))
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, str(path))
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    # The rename itself must reach the disk too.
+    try:
+        dir_fd = os.open(str(path.parent), os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(dir_fd)
+    except OSError:
+        pass
+    finally:
+        os.close(dir_fd)

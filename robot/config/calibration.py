@@ -28,14 +28,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Dict, List, Optional, Tuple
 
 from robot.base.errors import ConfigError
-from robot.base.files import CALIBRATION
+from robot.base.files import CALIBRATION, atomic_write_text
 from robot.base.samples import DepthFrame
 from robot.config.ranges import Range
 from robot.config.schema import Section, load_yaml_file
@@ -234,19 +232,7 @@ def calibration_yaml(cal: Calibration, comments: Optional[Dict[str, List[str]]] 
 def write_calibration(path, text: str) -> Path:
     """Write ``text`` to ``path`` atomically (a temporary file beside it, then a rename)."""
     p = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=str(p.parent if str(p.parent) else "."))
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, str(p))
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write_text(p, text)
     return p
 
 

@@ -51,6 +51,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from robot.base.geometry import arc_coefficients, wrap_angle
+from robot.base.stats import chi2_quantile
 from robot.config import FilterConfig
 from robot.localization.measurements import PlaneMeasurement
 
@@ -89,32 +90,6 @@ def body_increment(twist: np.ndarray, dt: float) -> Tuple[np.ndarray, np.ndarray
         [0.0, 0.0, dt],
     ])
     return inc, D
-
-
-def chi2_threshold(probability: float, dof: int) -> float:
-    """Chi-square quantile, by bisection on the regularized lower incomplete gamma function."""
-
-    def cdf(x: float) -> float:
-        s, h = dof / 2.0, x / 2.0
-        if h <= 0.0:
-            return 0.0
-        term = 1.0 / s
-        total = term
-        n = 1
-        while term > 1e-15 * total and n < 1000:
-            term *= h / (s + n)
-            total += term
-            n += 1
-        return math.exp(s * math.log(h) - h - math.lgamma(s)) * total
-
-    lo, hi = 0.0, 1000.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if cdf(mid) < probability:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
 
 
 class _PlanarEKF(ExtendedKalmanFilter):
@@ -207,8 +182,8 @@ class PoseFilter:
 
     def __init__(self, config: Optional[FilterConfig] = None):
         self.config = config or FilterConfig()
-        self._gate2 = chi2_threshold(self.config.gate_probability, 2)
-        self._gate3 = chi2_threshold(self.config.gate_probability, 3)
+        self._gate2 = chi2_quantile(self.config.gate_probability, 2)
+        self._gate3 = chi2_quantile(self.config.gate_probability, 3)
         self._ekf = _PlanarEKF()
         self._base: Optional[_Checkpoint] = None
         self._odom: List[_Odom] = []

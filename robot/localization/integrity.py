@@ -48,6 +48,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from robot.base.geometry import wrap_angle
+from robot.base.stats import chi2_quantile
 
 # Which directions are observable is decided in (x, y, phi) with 1 rad counted as 1 m.
 UNOBSERVED_VARIANCE = 1.0  # m^2 or rad^2 floor for a direction no plane constrains
@@ -309,35 +310,6 @@ class Stack:
             out.append(Solution(tuple(subsets[b]), x, 0.5 * (P[b] + P[b].T), V[b][:, obs[b]], V[b][:, ~obs[b]],
                                 float(max(chi2[b], 0.0)), int(3 * len(subsets[b]) - k), A[b], k, V[b][:, weak[b]]))
         return out
-
-
-@functools.lru_cache(maxsize=4096)
-def chi2_quantile(probability: float, dof: int) -> float:
-    """Chi-square quantile, by bisection on the regularized lower incomplete gamma function."""
-    if dof <= 0:
-        return 0.0
-
-    def cdf(x: float) -> float:
-        s, h = dof / 2.0, x / 2.0
-        if h <= 0.0:
-            return 0.0
-        term = 1.0 / s
-        total = term
-        n = 1
-        while term > 1e-15 * total and n < 2000:
-            term *= h / (s + n)
-            total += term
-            n += 1
-        return min(1.0, math.exp(s * math.log(h) - h - math.lgamma(s)) * total)
-
-    lo, hi = 0.0, 10.0 * dof + 200.0
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        if cdf(mid) < probability:
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
 
 
 @functools.lru_cache(maxsize=256)
