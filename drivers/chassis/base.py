@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import collections
 import enum
 from dataclasses import dataclass
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Deque, Dict, Optional, Sequence, Tuple
 
 from drivers.chassis.encoders import merge_odometry
 from firmware_protocol import HelloReply, Status, StatusFlag
+from robot.base.samples import WheelOdometry
 
 
 class LinkState(enum.Enum):
@@ -49,23 +51,66 @@ class ChassisStatus:
                    no_session=bool(f & StatusFlag.NO_SESSION), board_rx_errors=m.rx_errors)
 
 
-class OdometryQueue(asyncio.Queue):
+class OdometryQueue:
     """The queue ``Chassis.odometry_queue`` returns. Full, it merges its two oldest samples instead
     of dropping one, so a consumer that stalled still gets every tick: the merged sample spans both
-    intervals exactly (``merge_odometry``). ``coalesced`` counts the merges."""
+    intervals exactly (``merge_odometry``). ``coalesced`` counts the merges.
+
+    Not an ``asyncio.Queue``: on Python 3.8 and 3.9 that binds to ``get_event_loop()`` when it is
+    built, which raises outside a loop once any ``asyncio.run`` has finished in the process, and
+    the simulated-clock runner reads this queue with no loop at all. A consumer that awaits
+    ``get()`` binds to its running loop at that moment instead. Like ``asyncio.Queue``, it is not
+    thread-safe: feed it from the consumer's loop (or from the same thread, synchronously)."""
 
     def __init__(self, maxsize: int = 256):
-        super().__init__()  # unbounded underneath: put never blocks or raises
         self.limit = max(2, int(maxsize))
         self.coalesced = 0
+        self._items: Deque[WheelOdometry] = collections.deque()
+        self._getters: Deque[asyncio.Future] = collections.deque()
 
-    def _put(self, item) -> None:
-        q = self._queue
+    def qsize(self) -> int:
+        return len(self._items)
+
+    def empty(self) -> bool:
+        return not self._items
+
+    def put_nowait(self, item: WheelOdometry) -> None:
+        q = self._items
         if len(q) >= self.limit:
             first = q.popleft()
             q.appendleft(merge_odometry(first, q.popleft()))
             self.coalesced += 1
         q.append(item)
+        self._wake_one()
+
+    def get_nowait(self) -> WheelOdometry:
+        if not self._items:
+            raise asyncio.QueueEmpty
+        return self._items.popleft()
+
+    async def get(self) -> WheelOdometry:
+        while not self._items:
+            getter = asyncio.get_running_loop().create_future()
+            self._getters.append(getter)
+            try:
+                await getter
+            except BaseException:
+                getter.cancel()
+                try:
+                    self._getters.remove(getter)
+                except ValueError:
+                    pass
+                if self._items and not getter.cancelled():
+                    self._wake_one()  # it was woken for an item it will not take: pass the turn on
+                raise
+        return self._items.popleft()
+
+    def _wake_one(self) -> None:
+        while self._getters:
+            getter = self._getters.popleft()
+            if not getter.done():
+                getter.set_result(None)
+                return
 
 
 class Chassis(abc.ABC):
@@ -110,7 +155,7 @@ class Chassis(abc.ABC):
     def stop(self) -> bool: ...
 
     @abc.abstractmethod
-    def odometry_queue(self, maxsize: int = 256) -> asyncio.Queue:
+    def odometry_queue(self, maxsize: int = 256) -> OdometryQueue:
         """A new ``OdometryQueue`` fed every sample; when full its two oldest samples are merged."""
 
     @abc.abstractmethod

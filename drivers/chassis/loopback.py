@@ -97,7 +97,7 @@ class LoopbackChassis(Chassis):
         self._send(Stop())
         return True
 
-    def odometry_queue(self, maxsize: int = 256) -> asyncio.Queue:
+    def odometry_queue(self, maxsize: int = 256) -> OdometryQueue:
         """A new queue fed every WheelOdometry; when full its two oldest samples are merged, never dropped."""
         q = OdometryQueue(maxsize)
         self._queues.append(q)

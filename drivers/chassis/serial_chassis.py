@@ -179,7 +179,7 @@ class SerialChassis(Chassis):
             return False
         return self._write(self._session.frame(Stop()))
 
-    def odometry_queue(self, maxsize: int = 256) -> asyncio.Queue:
+    def odometry_queue(self, maxsize: int = 256) -> OdometryQueue:
         """A new queue fed every WheelOdometry; when full its two oldest samples are merged, never dropped."""
         q = OdometryQueue(maxsize)
         self._queues.append(q)
