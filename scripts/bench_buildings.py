@@ -30,7 +30,7 @@ from drivers.sim.render import Box, DepthNoise, SimScene, random_clutter, render
 from robot.base.geometry import pose_to_T_ground_robot  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
 from robot.localization.crlb import pose_crlb  # noqa: E402
-from robot.localization.localizer import DEFAULT_COARSE_STD, Localizer  # noqa: E402
+from robot.localization.localizer import DEFAULT_COARSE_STD, FIX_STATUSES, Localizer  # noqa: E402
 from robot.maps.plane_index import PlaneIndex  # noqa: E402
 from robot.maps.plane_map import PlaneMap, load_plane_map  # noqa: E402
 
@@ -270,11 +270,11 @@ def localize_in(plane_map: PlaneMap, n_poses: int, seed: int) -> Dict:
             vis_ms.append(best * 1e3)
         res = loc.localize(frames, coarse)
         e = np.array([res.x - truth[0], res.y - truth[1], math.remainder(res.phi - truth[2], 2 * math.pi)])
-        nees = float(e @ np.linalg.solve(res.cov, e)) if res.status == "ok" else None
+        nees = float(e @ np.linalg.solve(res.cov, e)) if res.status in FIX_STATUSES else None
         used, wrong, off = identification(plane_map, res, truth)
         two, two_near = two_walls(plane_map, res, truth)
         bound = None
-        if two and res.status == "ok":
+        if two and res.status in FIX_STATUSES:
             try:
                 bound = pose_crlb(ROBOT, plane_map, truth, DepthNoise())
             except np.linalg.LinAlgError:
@@ -317,7 +317,7 @@ def buildings(quick: bool) -> List[str]:
              "over poses with status ok. Used planes: 'off' when the fit in the robot frame is more than 3 deg or "
              "3 cm from the claimed plane at the true pose, 'wrong' when it is also more than 5 standard deviations "
              "of the fit's own covariance away (a fit to some other surface).", "",
-             "| map | planes | polygons | poses | visibility + ROI ms per frame (median / p95) | status ok / "
+             "| map | planes | polygons | poses | visibility + ROI ms per frame (median / p95) | status ok / unprotected / "
              "degenerate / no planes | pos err mm (median / p95) | heading err deg (median / p95) | planes used / "
              "wrong / off | localize ms (median) |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -344,8 +344,8 @@ def buildings(quick: bool) -> List[str]:
                 notes.append(f"- {label}: {where}.")
             out = localize_in(pm, n_poses, seed=sum(map(ord, label)))
             rows = out["rows"]
-            ok = [r for r in rows if r["status"] == "ok"]
-            statuses = [sum(1 for r in rows if r["status"] == s) for s in ("ok", "degenerate", "no_planes")]
+            ok = [r for r in rows if r["status"] in FIX_STATUSES]
+            statuses = [sum(1 for r in rows if r["status"] == s) for s in ("ok", "unprotected", "degenerate", "no_planes")]
             counts = [sum(r[k] for r in rows) for k in ("used", "wrong", "off")]
             intro.append(
                 f"| {label} | {len(pm)} | {sum(len(p.polygons) for p in pm.planes)} | {out['poses']} | "

@@ -59,7 +59,7 @@ sys.path.insert(0, str(ROOT))
 
 from robot.base.geometry import pose_to_T_ground_robot, wrap_angle  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
-from robot.localization.localizer import Localizer, coarse_covariance  # noqa: E402
+from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance  # noqa: E402
 from robot.maps.plane_map import PlaneMap, load_plane_map  # noqa: E402
 
 JSON_TAG = "BENCH_CPU_JSON "
@@ -356,7 +356,7 @@ def localizer_steps(quick: bool) -> Dict[str, Any]:
                 dt, res = cpu_of(loc.localize, frames[:n], coarse, cov)
                 plain[i].append(dt * 1e3)
                 passes[i].append(res.passes)
-                ok[i].append(res.status == "ok")
+                ok[i].append(res.status in FIX_STATUSES)
                 with prof.installed():
                     prof.reset()
                     dt, _ = cpu_of(loc.localize, frames[:n], coarse, cov)

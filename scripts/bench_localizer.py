@@ -16,7 +16,7 @@ sys.path.insert(0, str(ROOT))
 from drivers.sim.render import DepthNoise, SimScene, random_clutter, render_depth_frame  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
 from robot.localization.crlb import pose_crlb  # noqa: E402
-from robot.localization.localizer import Localizer, coarse_covariance  # noqa: E402
+from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance  # noqa: E402
 from robot.maps.plane_map import load_plane_map  # noqa: E402
 
 ROBOT = load_robot_config(ROOT / "config/robot.yaml")
@@ -83,7 +83,7 @@ def sweeps(quick):
                 totals[method][0] += wrong
                 totals[method][1] += sum(r[0] + r[1] for r in rows if not r[6])
                 totals[method][2] += wrong_sym
-                ok = [r for r in rows if r[3] == "ok"]
+                ok = [r for r in rows if r[3] in FIX_STATUSES]
                 pe = np.array([r[4] for r in ok]) if ok else np.array([np.nan])
                 he = np.array([r[5] for r in ok]) if ok else np.array([np.nan])
                 lines.append(f"| {head_name} | coarse {swept} {values[0]:.2f}..{values[-1]:.2f} | {method} | {len(rows)} | "
@@ -120,7 +120,7 @@ def static_accuracy(quick):
         for m in errs:
             res = loc.localize(frames, coarse, method=m)
             statuses[m].append(res.status)
-            if res.status == "ok":
+            if res.status in FIX_STATUSES:
                 errs[m].append(errors(res, truth))
                 e = np.array([res.x - truth[0], res.y - truth[1], math.remainder(res.phi - truth[2], 2 * math.pi)])
                 nees[m].append(float(e @ np.linalg.solve(res.cov, e)))

@@ -133,7 +133,7 @@ def run(quick: bool = False) -> str:
     from drivers.sim.render import SimScene
     from robot.base.geometry import wrap_angle
     from robot.fusion.ekf import PoseFilter
-    from robot.localization.localizer import Localizer
+    from robot.localization.localizer import FIX_STATUSES, Localizer
     from robot.maps.plane_map import load_plane_map
 
     robot = load_robot_config(ROOT / "config" / "robot.yaml")
@@ -172,7 +172,7 @@ def run(quick: bool = False) -> str:
 
         cam, wall_loc = _play(robot, fast_path, localize)
         fps_loc = len(results) / wall_loc
-        ok = sum(r.status == "ok" for r in results)
+        ok = sum(r.status in FIX_STATUSES for r in results)
         err = [math.hypot(r.x - truth[i][0], r.y - truth[i][1]) for i, r in enumerate(results)]
         loc_ms = statistics.median(r.ms for r in results)
 

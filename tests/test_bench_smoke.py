@@ -12,6 +12,7 @@ import threading
 import pytest
 
 from robot.cli.main import main
+from robot.localization.localizer import FIX_STATUSES
 
 ROBOT = "config/robot.yaml"
 MAP = "config/maps/paper_arena.yaml"
@@ -108,7 +109,7 @@ def test_localize_repeat_adds_timing_and_keeps_the_result(capsys, snapshots):
     once.pop("ms")
     rep.pop("ms")
     assert rep == once  # the same localization, repeated: the same answer every time
-    assert rep["status"] == "ok"
+    assert rep["status"] in FIX_STATUSES
 
 
 def test_localize_repeat_text_output_has_a_timing_line(capsys, snapshots):

@@ -36,7 +36,7 @@ from robot.base.geometry import wrap_angle
 from robot.config.schema import parse_yaml
 from robot.control.core import CommandRefused
 from robot.control.path_file import PathPlan, Waypoint, check_path_in_bounds, parse_path
-from robot.localization.localizer import DEFAULT_COARSE_STD
+from robot.localization.localizer import DEFAULT_COARSE_STD, FIX_STATUSES
 
 if TYPE_CHECKING:
     from robot.app.controller import RobotApp
@@ -207,7 +207,7 @@ class Operator:
             raise CommandRefused(f"what the cameras see contradicts that pose ({result.status}"
                                  + (f"; depth behind {', '.join(map(str, against))[:120]}" if against else "")
                                  + "); or force")
-        if result.status != "ok":
+        if result.status not in FIX_STATUSES:
             # A wall the pose predicts but the cameras do not find where it should be leaves a
             # direction unconfirmed: exactly the direction in which a wrong pose would be wrong.
             missed = "; ".join(f"{p.id} ({p.camera}): {p.reason}" for p in result.planes if not p.used)

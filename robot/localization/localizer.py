@@ -39,6 +39,9 @@ from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import MapPlane, PlaneMap
 
 METHODS = ("joint", "paper")
+# A full, consistent fix: every direction observed and the walls agreeing; "unprotected" is one
+# whose error bound is too wide to vouch for, which a multi-view search may still rank and confirm.
+FIX_STATUSES = ("ok", "unprotected")
 DEFAULT_COARSE_STD = (0.1, 0.1, math.radians(10.0))  # what a user-typed --init is assumed good to
 # Evidence against a pose counts only from a ROI whose pixels mostly have depth: a dark or shiny
 # wall with a few valid pixels says nothing about where it is.
@@ -73,7 +76,12 @@ class LocalizationResult:
     y: float
     phi: float
     cov: np.ndarray
-    status: str  # ok | degenerate | inconsistent | no_planes
+    # ok: fully observed, consistent and vouched for (protection levels within the alert limits);
+    # unprotected: fully observed and consistent, but a protection level is over its alert limit
+    # (the pose is the best estimate, its error bound too wide to vouch for); degenerate: some
+    # direction unobserved; inconsistent: the walls or the depth contradict each other or the
+    # pose; no_planes: nothing fitted.
+    status: str
     unobservable: List[Dict]
     planes: List[PlaneReport]
     measurements: List[PlaneMeasurement] = field(default_factory=list)
@@ -347,11 +355,28 @@ class Localizer:
                 # How far one wrong wall could have moved the pose unseen (leave-one-out), m and rad.
                 "separation_m": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_h, 6),
                 "separation_rad": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_heading, 8)}
+        status = verdict.status
+        if status == "ok":
+            over = self._over_alert_limits(hpl, vpl)
+            if over:
+                status, info["reason"] = "unprotected", over
         x = verdict.x
-        return LocalizationResult(float(x[0]), float(x[1]), float(wrap_angle(x[2])), verdict.cov, verdict.status,
+        return LocalizationResult(float(x[0]), float(x[1]), float(wrap_angle(x[2])), verdict.cov, status,
                                   verdict.unobservable, [w.report for w in fits], measurements,
                                   (time.perf_counter() - t0) * 1e3, passes, hpl, vpl, self.params.integrity_risk, info,
                                   sys_cov)
+
+    def _over_alert_limits(self, hpl: float, vpl: float) -> str:
+        """Why these protection levels do not vouch for the pose ('' when they do)."""
+        q = self.robot.quality
+        over = []
+        if not hpl <= q.horizontal_alert_limit:
+            over.append(f"horizontal protection level {1000 * hpl:.0f} mm over the "
+                        f"{1000 * q.horizontal_alert_limit:.0f} mm alert limit")
+        if not vpl <= math.radians(q.heading_alert_limit_deg):
+            over.append(f"heading protection level {math.degrees(vpl):.2f} deg over the "
+                        f"{q.heading_alert_limit_deg:g} deg alert limit")
+        return "; ".join(over)
 
     # -- one frame ------------------------------------------------------------------------------
 

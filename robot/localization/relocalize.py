@@ -42,7 +42,7 @@ from robot.base.errors import InputError
 from robot.base.geometry import pose_to_T_ground_robot, wrap_angle
 from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, RobotConfig
-from robot.localization.localizer import Localizer, coarse_covariance
+from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
 from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
 from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import PlaneMap
@@ -549,12 +549,12 @@ class Relocalizer:
         hyps_out.sort(key=lambda h: -h.score)
         close = [h for h in hyps_out if h.score >= hyps_out[0].score - UNIQUE_MARGIN]
         best = hyps_out[0]
-        if (len(close) == 1 and best.status == "ok" and best.support >= UNIQUE_SUPPORT
+        if (len(close) == 1 and best.status in FIX_STATUSES and best.support >= UNIQUE_SUPPORT
                 and best.see_through <= UNIQUE_SEE_THROUGH):
             return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
         if len(close) == 1:
             h = hyps_out[0]
-            if h.status != "ok":
+            if h.status not in FIX_STATUSES:
                 why = f"best hypothesis not confirmed by the localizer ({h.status})"
             elif h.see_through > UNIQUE_SEE_THROUGH:
                 why = (f"the cameras see through walls the best hypothesis predicts ({h.see_through:.1%} of its pixels; "
@@ -571,7 +571,7 @@ class Relocalizer:
         res = None
         for fs, rel in views:
             res = self.localizer.localize(fs, compose(pose, rel), cov0)
-            if res.status == "ok":
+            if res.status in FIX_STATUSES:
                 break
         back = inverse(rel)
         s0, support0, planes0 = scorer.score(pose)
