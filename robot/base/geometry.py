@@ -83,7 +83,9 @@ def make_transform(R: np.ndarray, t: Sequence[float]) -> np.ndarray:
 
 def pose_to_T_ground_robot(x: float, y: float, phi: float) -> np.ndarray:
     """T_GR of the planar pose (x, y, phi): robot frame on the floor, z up."""
-    return make_transform(rot_z(phi), (x, y, 0.0))
+    # Written out (the same entries as make_transform(rot_z(phi), (x, y, 0))): it runs per frame.
+    c, s = math.cos(phi), math.sin(phi)
+    return np.array([[c, -s, 0.0, float(x)], [s, c, 0.0, float(y)], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 
 
 def invert_transform(T: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded  # scipy comes with filterpy
+from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from robot.base.geometry import wrap_angle
 from robot.calibration.model import (

@@ -132,6 +132,17 @@ def free_distance(points_xy: np.ndarray, half_x: float, half_y: float, offset_x:
     ux, uy = float(u[0]), float(u[1])
     px = points_xy[:, 0] - offset_x
     py = points_xy[:, 1]
+    # Only points in the swept corridor can be hit: drop the rest first (a few array passes instead
+    # of twenty over the whole memory, every tick). The margin only keeps rounding from dropping a
+    # point the exact test below would hit; the result is that test's, unchanged.
+    corridor = half_x * abs(uy) + half_y * abs(ux)
+    margin = 1e-9 * (1.0 + corridor + float(np.abs(points_xy).max()))
+    if not math.isfinite(margin):  # non-finite points: keep them all, the exact test decides
+        margin = math.inf
+    near = np.nonzero(np.abs(px * uy - py * ux) <= corridor + margin)[0]
+    if len(near) == 0:
+        return math.inf
+    px, py = px[near], py[near]
     lo = np.zeros(len(px))
     hi = np.full(len(px), np.inf)
     for p, h, c in ((px, half_x, ux), (py, half_y, uy)):
@@ -302,8 +313,15 @@ class ProtectiveStop:
             return np.vstack(fresh) if fresh else np.zeros((0, 2))
         mem_xy, mem_t = self.memory
         recent = (t - mem_t) <= c.memory_time
+        # The memory is kept oldest first, so the recent points are usually a suffix: slice it (a
+        # boolean index copies the whole memory, the largest cost of a tick).
+        first = int(np.argmax(recent)) if len(recent) else 0
+        if len(recent) and recent[first] and recent[first:].all():
+            mem_xy = mem_xy[first:]
+        else:
+            mem_xy = mem_xy[recent]
         T = pose_to_T_ground_robot(*pose)
-        pts = (mem_xy[recent] - T[:2, 3]) @ T[:2, :2]
+        pts = (mem_xy - T[:2, 3]) @ T[:2, :2]
         blind = [self._views[s.camera] for s in list(self.scans.values())
                  if s.near_blind and abs(t - s.t) <= c.max_scan_age and s.camera in self._views]
         for view in blind:  # something may be right in front of the lens, nearer than it can measure
@@ -345,8 +363,12 @@ class ProtectiveStop:
                     zone = BLIND if zone == CLEAR else zone
                 reasons.append(f"no fresh camera view toward {math.degrees(bearing):.0f} deg")
         if abs(wz) > 1e-9 and len(points):
-            r = np.hypot(points[:, 0], points[:, 1])
-            inside_body = (np.abs(points[:, 0] - c.footprint_offset_x) <= self._half_x) & (np.abs(points[:, 1]) <= self._half_y)
+            # The exact test on the points roughly inside the circle (a squared-radius pre-filter with margin).
+            px, py = points[:, 0], points[:, 1]
+            near = np.nonzero(px * px + py * py < (self._sweep_radius * (1.0 + 1e-9)) ** 2)[0]
+            pts = points[near]
+            r = np.hypot(pts[:, 0], pts[:, 1])
+            inside_body = (np.abs(pts[:, 0] - c.footprint_offset_x) <= self._half_x) & (np.abs(pts[:, 1]) <= self._half_y)
             if np.any((r < self._sweep_radius) & ~inside_body):
                 wz = 0.0
                 zone = STOP if zone in (CLEAR, BLIND) and speed <= 1e-9 else zone

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -62,7 +62,14 @@ _KIND_PLANE = 1
 _KIND_POSE = 2
 _KIND_BASE = -1
 
-
+# The filter runs at the odometry rate and replays its history for every lagged fix, so the
+# per-step work is plain floats on cached, state-independent parts; only filterpy's own
+# predict/update touch numpy. A motion is (i0, i1, i2, m00, m01, m02, m11, m12, m22, var_pos,
+# var_phi): the body increment of one constant-twist segment, q_scale * D Q_twist D^T (its
+# twist noise in the start frame, symmetric) and the floor variances.
+Motion = Tuple[float, float, float, float, float, float, float, float, float, float, float]
+# An extra process noise (the unknown timing of a gap, a held twist): (e00, e01, e02, e11, e12, e22) in G.
+Extra = Tuple[float, float, float, float, float, float]
 
 
 @dataclass(frozen=True)
@@ -92,22 +99,44 @@ def body_increment(twist: np.ndarray, dt: float) -> Tuple[np.ndarray, np.ndarray
     return inc, D
 
 
+def _motion(vx: float, vy: float, wz: float, Q: Sequence[Sequence[float]], dt: float, q_scale: float,
+            cfg: FilterConfig) -> Motion:
+    """The state-independent part of one prediction segment (``body_increment`` and D Q D^T, in floats)."""
+    A, B, dA, dB = arc_coefficients(wz * dt)
+    i0, i1, i2 = dt * (A * vx - B * vy), dt * (B * vx + A * vy), wz * dt
+    d00, d01, d02 = dt * A, -dt * B, dt * dt * (dA * vx - dB * vy)
+    d10, d11, d12 = dt * B, dt * A, dt * dt * (dB * vx + dA * vy)
+    (q00, q01, q02), (q10, q11, q12), (q20, q21, q22) = Q
+    r00, r01, r02 = d00 * q00 + d01 * q10 + d02 * q20, d00 * q01 + d01 * q11 + d02 * q21, d00 * q02 + d01 * q12 + d02 * q22
+    r10, r11, r12 = d10 * q00 + d11 * q10 + d12 * q20, d10 * q01 + d11 * q11 + d12 * q21, d10 * q02 + d11 * q12 + d12 * q22
+    dist = math.hypot(i0, i1)
+    turn = abs(i2)
+    var_pos = cfg.pos_noise_density * dt + cfg.slip_per_metre * dist
+    var_phi = cfg.heading_noise_density * dt + cfg.heading_slip_per_rad * turn + cfg.heading_slip_per_metre * dist
+    return (i0, i1, i2,
+            q_scale * (r00 * d00 + r01 * d01 + r02 * d02), q_scale * (r00 * d10 + r01 * d11 + r02 * d12),
+            q_scale * (r02 * dt), q_scale * (r10 * d10 + r11 * d11 + r12 * d12), q_scale * (r12 * dt),
+            q_scale * (q22 * dt * dt), var_pos, var_phi)
+
+
+_ZERO_Q = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+
+
 class _PlanarEKF(ExtendedKalmanFilter):
-    """filterpy's EKF with the exact planar motion: ``u`` is a body-frame increment."""
+    """filterpy's EKF with the exact planar motion: ``u`` is the increment already rotated into G."""
 
     def __init__(self):
         super().__init__(dim_x=3, dim_z=2)
 
     def predict_x(self, u=0):
-        phi = float(self.x[2, 0])
-        c, s = math.cos(phi), math.sin(phi)
-        dx, dy, dphi = float(u[0]), float(u[1]), float(u[2])
-        self.x = self.x + np.array([[c * dx - s * dy], [s * dx + c * dy], [dphi]])
+        x = self.x
+        # The angle is wrapped here, on the fresh array, so the result needs no copy afterwards.
+        self.x = np.array([[x.item(0) + u[0]], [x.item(1) + u[1]], [wrap_angle(x.item(2) + u[2])]])
 
 
 def _wrapped_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """z - h(x) for filterpy, with the angle row wrapped (the angle is the last row)."""
-    r = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
+    r = a - b
     r[-1, 0] = wrap_angle(float(r[-1, 0]))
     return r
 
@@ -122,6 +151,10 @@ class _Odom:
     t: float
     twist: np.ndarray  # (3,) mean body twist over the interval ending at t
     Q: np.ndarray  # (3, 3) covariance of that mean twist
+    # Caches, dropped when a gyro sample lands in the interval: (vx, vy, wz, Q rows, length) with
+    # the gyro fused in, and the motion of each piece (t0, t1) of the interval a replay used.
+    interval: Optional[Tuple[float, float, float, Tuple[Tuple[float, ...], ...], float]] = None
+    pieces: Dict[Tuple[float, float], Motion] = field(default_factory=dict)
 
 
 @dataclass
@@ -132,13 +165,16 @@ class _Fix:
     pose: Optional[np.ndarray] = None  # (3,) absolute pose
     pose_cov: Optional[np.ndarray] = None
     gate: bool = True
+    # A plane's model, taken once when it is inserted (it is replayed many times):
+    # (n0, n1, d_G, atan2(n_G), z0, z1, R (2x2) entries, H, R, z column, label).
+    model: Optional[tuple] = None
 
 
 @dataclass
 class _Checkpoint:
     key: Key
     t: float
-    x: np.ndarray  # (3,)
+    x: np.ndarray  # (3, 1), filterpy's layout; never modified in place once stored
     P: np.ndarray  # (3, 3)
 
 
@@ -147,17 +183,26 @@ def _after_odom(t: float) -> Key:
     return (t, _KIND_ODOM, "", "", 1)
 
 
-def _spread(phi: float, inc: np.ndarray, scale: float) -> np.ndarray:
+def _spread(phi: float, i0: float, i1: float, i2: float, scale: float) -> Extra:
     """Covariance of an unknown share (std ``scale``) of the body increment ``inc`` taken at heading
     phi: along the increment in G, plus a quarter of it per axis for a path that was not straight."""
     c, s = math.cos(phi), math.sin(phi)
-    g = np.array([c * inc[0] - s * inc[1], s * inc[0] + c * inc[1], inc[2]])
-    d2 = float(g[0] * g[0] + g[1] * g[1])
-    return (scale * scale) * (np.outer(g, g) + 0.25 * np.diag([d2, d2, float(g[2] * g[2])]))
+    g0, g1, g2 = c * i0 - s * i1, s * i0 + c * i1, i2
+    d2 = g0 * g0 + g1 * g1
+    k = scale * scale
+    return (k * (g0 * g0 + 0.25 * d2), k * (g0 * g1), k * (g0 * g2), k * (g1 * g1 + 0.25 * d2), k * (g1 * g2),
+            k * (g2 * g2 + 0.25 * (g2 * g2)))
 
 
 def _finite(*arrays) -> bool:
     return all(bool(np.isfinite(np.asarray(a, dtype=float)).all()) for a in arrays)
+
+
+def _all_finite(*values: float) -> bool:
+    for v in values:
+        if not math.isfinite(v):
+            return False
+    return True
 
 
 def _is_covariance(C: np.ndarray, n: int) -> bool:
@@ -169,6 +214,41 @@ def _is_covariance(C: np.ndarray, n: int) -> bool:
     if float(np.abs(C - C.T).max()) > 1e-9 * scale:
         return False
     return bool(np.linalg.eigvalsh(C)[0] >= -1e-12 * scale)
+
+
+def _is_covariance3(C: np.ndarray) -> bool:
+    """``_is_covariance(C, 3)`` without LAPACK for the usual (diagonally dominant) case."""
+    if C.shape != (3, 3):
+        return False
+    (a, b, c), (d, e, f), (g, h, i) = C.tolist()
+    if not _all_finite(a, b, c, d, e, f, g, h, i):
+        return False
+    scale = max(1e-300, abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
+    if max(abs(b - d), abs(c - g), abs(f - h)) > 1e-9 * scale:
+        return False
+    # Gershgorin on the lower triangle (what eigvalsh reads): every eigenvalue is at least this.
+    if min(a - abs(d) - abs(g), e - abs(d) - abs(h), i - abs(g) - abs(h)) >= 0.0:
+        return True
+    return _is_covariance(C, 3)
+
+
+def _is_definite2(R: np.ndarray) -> bool:
+    """``_is_covariance(R, 2)`` and ``det(R) > 0``, in closed form when clearly so."""
+    if R.shape != (2, 2):
+        return False
+    (a, b), (c, d) = R.tolist()
+    if not _all_finite(a, b, c, d):
+        return False
+    scale = max(1e-300, abs(a), abs(b), abs(c), abs(d))
+    if abs(b - c) > 1e-9 * scale:
+        return False
+    # Smallest eigenvalue of the lower triangle's matrix; a clear margin makes the determinant
+    # positive whatever rounding the general routines would add.
+    half = 0.5 * (a - d)
+    lam = 0.5 * (a + d) - math.sqrt(half * half + c * c)
+    if lam >= 1e-6 * scale:
+        return True
+    return _is_covariance(R, 2) and np.linalg.det(R) > 0.0
 
 
 class PoseFilter:
@@ -195,9 +275,16 @@ class PoseFilter:
         self._fixes: List[_Fix] = []
         self._fix_keys: List[Key] = []
         self._results: Dict[Key, UpdateResult] = {}
-        self._checkpoints: List[_Checkpoint] = []
+        # The state after each input, as parallel lists (bisected by key and by time, never scanned).
+        self._cp_keys: List[Key] = []
+        self._cp_t: List[float] = []
+        self._cp_x: List[np.ndarray] = []
+        self._cp_P: List[np.ndarray] = []
         self._dirty: Optional[Key] = None
         self._seq = 0
+        # predicted(t) for the last t asked, until the next input: the control tick and the frame
+        # pipeline ask for the same instant more than once.
+        self._memo: Optional[Tuple[float, float, float, float, np.ndarray]] = None
 
     # -- public API -------------------------------------------------------------------------
 
@@ -216,24 +303,29 @@ class PoseFilter:
         if not _finite([t, x, y, phi]) or not _is_covariance(cov, 3):
             raise ValueError("set_pose needs a finite pose and a symmetric positive semi-definite 3x3 covariance")
         key: Key = (float(t), _KIND_BASE, "", "", 0)
-        self._base = _Checkpoint(key, float(t), np.array([x, y, float(wrap_angle(phi))]), cov.copy())
+        x0 = np.array([[float(x)], [float(y)], [float(wrap_angle(phi))]])
+        self._base = _Checkpoint(key, float(t), x0, cov.copy())
         self._odom, self._odom_keys, self._odom_t = [], [], []
         self._odom_origin = float(t)
         self._gyro_t, self._gyro = [], []
         self._fixes, self._fix_keys = [], []
         self._results = {}
-        self._checkpoints = []
+        self._cp_keys, self._cp_t, self._cp_x, self._cp_P = [], [], [], []
         self._dirty = None
+        self._memo = None
 
     def predict_twist(self, t: float, vx: float, vy: float, wz: float, Q_twist: np.ndarray) -> UpdateResult:
         """Odometry: the mean body twist over the interval ending at t, and its covariance."""
-        twist = np.array([vx, vy, wz], dtype=float)
+        self._memo = None
         Q = np.asarray(Q_twist, dtype=float)
-        if not _finite([t]) or not _finite(twist) or not _is_covariance(Q, 3):
+        try:
+            t, vx, vy, wz = float(t), float(vx), float(vy), float(wz)
+        except (TypeError, ValueError):
+            t = math.nan
+        if not _all_finite(t, vx, vy, wz) or not _is_covariance3(Q):
             return UpdateResult(False, math.nan, "odometry rejected: non-finite twist or bad covariance")
         if self._base is None:
             return UpdateResult(False, math.nan, "odometry ignored: the pose is not set")
-        t = float(t)
         if t <= self._base.t:
             return UpdateResult(False, math.nan, f"odometry at {t:.3f} s is not after the filter's start {self._base.t:.3f} s")
         if self._odom and t <= self._odom[-1].t:
@@ -241,7 +333,9 @@ class PoseFilter:
                                 f"odometry at {t:.3f} s is not after the previous sample {self._odom[-1].t:.3f} s")
         prev_end = self._odom[-1].t if self._odom else self._odom_origin
         key: Key = (t, _KIND_ODOM, "", "", 0)
-        self._odom.append(_Odom(key, t, twist, 0.5 * (Q + Q.T)))
+        # Symmetrised as stored; an exactly symmetric Q (the usual) is its own symmetric part.
+        Qs = Q.copy() if (Q == Q.T).all() else 0.5 * (Q + Q.T)
+        self._odom.append(_Odom(key, t, np.array([vx, vy, wz]), Qs))
         self._odom_keys.append(key)
         self._odom_t.append(t)
         # Fixes after the previous sample were predicted with the held twist: redo them.
@@ -262,6 +356,7 @@ class PoseFilter:
 
     def predict_gyro(self, t: float, wz: float, variance: float) -> UpdateResult:
         """A yaw-rate sample (rad/s about R's z axis) and its variance (include the bias)."""
+        self._memo = None
         if not _finite([t, wz, variance]) or variance <= 0.0:
             return UpdateResult(False, math.nan, "gyro rejected: non-finite rate or variance <= 0")
         if self._base is None:
@@ -274,6 +369,9 @@ class PoseFilter:
         self._gyro.insert(i, (float(wz), float(variance)))
         j = bisect.bisect_left(self._odom_t, t)
         if j < len(self._odom):  # the interval containing t is already in the history
+            o = self._odom[j]
+            o.interval = None
+            o.pieces.clear()
             start = self._odom_t[j - 1] if j > 0 else self._odom_origin
             self._mark_dirty(_after_odom(start))
         return UpdateResult(True, 0.0, "")
@@ -284,34 +382,53 @@ class PoseFilter:
 
     def update_planes(self, measurements: Sequence[PlaneMeasurement]) -> List[UpdateResult]:
         """Fuse the planes of one or more frames with a single replay (cheaper than one by one)."""
+        self._memo = None
         pending: List[Tuple[int, Key, str]] = []
         results: List[Optional[UpdateResult]] = []
         for meas in measurements:
-            rejection = self._check_plane(meas)
-            if rejection is None:
+            model = self._plane_model(meas)
+            if isinstance(model, UpdateResult):
+                rejection: Optional[UpdateResult] = model
+            else:
                 key: Key = (float(meas.t_capture), _KIND_PLANE, str(meas.camera), str(meas.plane_id), self._next_seq())
                 what = f"plane {meas.plane_id}"
-                rejection = self._insert_fix(_Fix(key, float(meas.t_capture), plane=meas), what)
+                rejection = self._insert_fix(_Fix(key, float(meas.t_capture), plane=meas, model=model), what)
                 if rejection is None:
                     pending.append((len(results), key, what))
             results.append(rejection)
         self._ensure()
         for i, key, what in pending:
             results[i] = self._results.get(key, UpdateResult(False, math.nan, f"{what}: dropped from the history"))
-        return results
+        return results  # type: ignore[return-value]
 
-    def _check_plane(self, meas: PlaneMeasurement) -> Optional[UpdateResult]:
+    def _plane_model(self, meas: PlaneMeasurement):
+        """The checked plane's model for ``_apply_plane``, or the UpdateResult that rejects it."""
         n = np.asarray(meas.n_ground, dtype=float)
-        if not _finite([meas.t_capture, meas.d_ground], n, meas.z) or np.shape(meas.z) != (2,) or n.shape != (3,):
+        z = np.asarray(meas.z, dtype=float)
+        ok = n.shape == (3,) and z.shape == (2,)
+        if ok:
+            n0, n1, n2 = n.tolist()
+            z0, z1 = z.tolist()
+            try:
+                t, d = float(meas.t_capture), float(meas.d_ground)
+            except (TypeError, ValueError):
+                t = d = math.nan
+            ok = _all_finite(t, d, n0, n1, n2, z0, z1)
+        if not ok:
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: non-finite or malformed measurement")
-        if not _is_covariance(meas.R, 2) or np.linalg.det(np.asarray(meas.R, dtype=float)) <= 0.0:
+        R = np.array(meas.R, dtype=float)
+        if not _is_definite2(R):
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: R is not a positive definite 2x2 covariance")
-        if math.hypot(n[0], n[1]) < self.config.min_wall_normal:
+        if math.hypot(n0, n1) < self.config.min_wall_normal:
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: not a wall (normal too close to vertical)")
-        return None
+        (r00, r01), (r10, r11) = R.tolist()
+        H = np.array([[n0, n1, 0.0], [0.0, 0.0, -1.0]])
+        return (n0, n1, d, math.atan2(n1, n0), z0, z1, r00, r01, r10, r11, H, R, z.reshape(2, 1).copy(),
+                f"plane {meas.plane_id} ({meas.camera})")
 
     def update_pose(self, t: float, x: float, y: float, phi: float, cov: np.ndarray, gate: bool = True) -> UpdateResult:
         """Fuse an absolute pose fix (e.g. from an operator or a global solve) at time t."""
+        self._memo = None
         cov = np.asarray(cov, dtype=float)
         if not _finite([t, x, y, phi]) or not _is_covariance(cov, 3) or np.linalg.det(cov) <= 0.0:
             return UpdateResult(False, math.nan, "pose fix rejected: non-finite pose or bad covariance")
@@ -327,8 +444,9 @@ class PoseFilter:
         """(t, [x, y, phi], P) after the newest input."""
         self._require()
         self._ensure()
-        cp = self._checkpoints[-1] if self._checkpoints else self._base
-        return cp.t, cp.x.copy(), cp.P.copy()
+        if self._cp_keys:
+            return self._cp_t[-1], self._cp_x[-1].reshape(3).copy(), self._cp_P[-1].copy()
+        return self._base.t, self._base.x.reshape(3).copy(), self._base.P.copy()
 
     def predicted(self, t: float) -> Tuple[float, float, float, np.ndarray]:
         """(x, y, phi, P) at time t, from the inputs up to t, without changing the filter.
@@ -338,13 +456,19 @@ class PoseFilter:
         """
         self._require()
         self._ensure()
-        times = [cp.t for cp in self._checkpoints]
-        i = bisect.bisect_right(times, t)
-        cp = self._checkpoints[i - 1] if i > 0 else self._base
-        x, P = cp.x, cp.P
-        if t > cp.t:
-            x, P = self._propagate(x, P, cp.t, float(t))
-        return float(x[0]), float(x[1]), float(x[2]), P.copy()
+        memo = self._memo
+        if memo is not None and memo[0] == t:
+            return memo[1], memo[2], memo[3], memo[4].copy()
+        i = bisect.bisect_right(self._cp_t, t)
+        if i > 0:
+            t0, x, P = self._cp_t[i - 1], self._cp_x[i - 1], self._cp_P[i - 1]
+        else:
+            t0, x, P = self._base.t, self._base.x, self._base.P
+        if t > t0:
+            x, P = self._propagate(x, P, t0, float(t))
+        out = (x.item(0), x.item(1), x.item(2))
+        self._memo = (t, out[0], out[1], out[2], P)
+        return out[0], out[1], out[2], P.copy()
 
     @property
     def history_start(self) -> float:
@@ -396,59 +520,77 @@ class PoseFilter:
             return
         dirty = self._dirty
         self._dirty = None
-        keep = bisect.bisect_left([cp.key for cp in self._checkpoints], dirty)
-        del self._checkpoints[keep:]
-        start = self._checkpoints[-1] if self._checkpoints else self._base
-        i = bisect.bisect_right(self._odom_keys, start.key)
-        j = bisect.bisect_right(self._fix_keys, start.key)
-        x, P, t = start.x, start.P, start.t
-        while i < len(self._odom) or j < len(self._fixes):
-            if j >= len(self._fixes) or (i < len(self._odom) and self._odom_keys[i] < self._fix_keys[j]):
-                ev_key, ev_t = self._odom_keys[i], self._odom[i].t
-                x, P = self._propagate(x, P, t, ev_t)
+        self._memo = None
+        cp_keys, cp_t, cp_x, cp_P = self._cp_keys, self._cp_t, self._cp_x, self._cp_P
+        keep = bisect.bisect_left(cp_keys, dirty)
+        del cp_keys[keep:], cp_t[keep:], cp_x[keep:], cp_P[keep:]
+        if keep:
+            start_key, t, x, P = cp_keys[-1], cp_t[-1], cp_x[-1], cp_P[-1]
+        else:
+            b = self._base
+            start_key, t, x, P = b.key, b.t, b.x, b.P
+        odom, odom_keys, fixes, fix_keys = self._odom, self._odom_keys, self._fixes, self._fix_keys
+        i = bisect.bisect_right(odom_keys, start_key)
+        j = bisect.bisect_right(fix_keys, start_key)
+        n_odom, n_fix = len(odom), len(fixes)
+        while i < n_odom or j < n_fix:
+            if j >= n_fix or (i < n_odom and odom_keys[i] < fix_keys[j]):
+                ev_key, ev_t = odom_keys[i], odom[i].t
+                if ev_t > t:
+                    x, P = self._propagate_in(i, x, P, t, ev_t)
                 i += 1
             else:
-                fix = self._fixes[j]
-                ev_key, ev_t = fix.key, fix.t
-                x, P = self._propagate(x, P, t, ev_t)
-                x, P, self._results[fix.key] = self._apply_fix(x, P, fix)
+                fix = fixes[j]
+                ev_key, ev_t = fix_keys[j], fix.t
+                if ev_t > t:
+                    x, P = self._propagate(x, P, t, ev_t)
+                if fix.model is not None:
+                    x, P, self._results[ev_key] = self._apply_plane(x, P, fix.model)
+                else:
+                    x, P, self._results[ev_key] = self._apply_fix(x, P, fix)
                 j += 1
             t = ev_t
-            self._checkpoints.append(_Checkpoint(ev_key, t, x, P))
+            cp_keys.append(ev_key)
+            cp_t.append(t)
+            cp_x.append(x)
+            cp_P.append(P)
         self._trim()
 
     def _trim(self) -> None:
         cfg = self.config
         horizon = self._newest_time() - cfg.history
-        n = bisect.bisect_left([cp.t for cp in self._checkpoints], horizon)
-        excess = len(self._checkpoints) - cfg.max_events
+        n = bisect.bisect_left(self._cp_t, horizon)
+        excess = len(self._cp_t) - cfg.max_events
         n = max(n, excess)
         if n <= 0:
             return
-        new_base = self._checkpoints[n - 1]
-        self._base = _Checkpoint(new_base.key, new_base.t, new_base.x, new_base.P)
-        del self._checkpoints[:n]
+        self._base = _Checkpoint(self._cp_keys[n - 1], self._cp_t[n - 1], self._cp_x[n - 1], self._cp_P[n - 1])
+        del self._cp_keys[:n], self._cp_t[:n], self._cp_x[:n], self._cp_P[:n]
+        new_key = self._base.key
         # The newest odometry input always stays: it starts the next interval and holds the twist.
-        k = min(bisect.bisect_right(self._odom_keys, new_base.key), len(self._odom) - 1)
+        k = min(bisect.bisect_right(self._odom_keys, new_key), len(self._odom) - 1)
         if k > 0:
             self._odom_origin = self._odom_t[k - 1]
             del self._odom[:k]
             del self._odom_keys[:k]
             del self._odom_t[:k]
-        k = bisect.bisect_right(self._fix_keys, new_base.key)
-        for f in self._fixes[:k]:
-            self._results.pop(f.key, None)
+        k = bisect.bisect_right(self._fix_keys, new_key)
+        for key in self._fix_keys[:k]:
+            self._results.pop(key, None)
         del self._fixes[:k]
         del self._fix_keys[:k]
         k = bisect.bisect_right(self._gyro_t, self._odom_origin)
         del self._gyro_t[:k]
         del self._gyro[:k]
 
-    def _interval_twist(self, i: int) -> Tuple[np.ndarray, np.ndarray, float]:
-        """Mean twist, its covariance and the interval length of odometry input i, gyro fused in."""
+    def _interval(self, i: int):
+        """(vx, vy, wz, Q rows, interval length) of odometry input i, gyro fused in (cached)."""
         o = self._odom[i]
-        start = self._odom[i - 1].t if i > 0 else self._odom_origin
-        twist, Q = o.twist, o.Q
+        if o.interval is not None:
+            return o.interval
+        start = self._odom_t[i - 1] if i > 0 else self._odom_origin
+        vx, vy, wz = o.twist.tolist()
+        Q = o.Q.tolist()
         a = bisect.bisect_right(self._gyro_t, start)
         b = bisect.bisect_right(self._gyro_t, o.t)
         if b > a:
@@ -456,18 +598,19 @@ class PoseFilter:
             wz_g = sum(s[0] for s in samples) / len(samples)
             # The mean of n samples is not n times better: bias dominates, so keep the sample variance.
             var_g = sum(s[1] for s in samples) / len(samples)
-            var_w = float(Q[2, 2])
+            var_w = Q[2][2]
             if self.config.gyro_mode == "replace" or var_w <= 0.0:
                 w = 0.0
             else:
                 w = var_g / (var_w + var_g)  # weight of the wheels' wz
-            twist = twist.copy()
-            twist[2] = w * twist[2] + (1.0 - w) * wz_g
-            Q = Q.copy()
-            Q[2, :2] *= w
-            Q[:2, 2] *= w
-            Q[2, 2] = w * w * var_w + (1.0 - w) ** 2 * var_g
-        return twist, Q, o.t - start
+            wz = w * wz + (1.0 - w) * wz_g
+            Q[2][0] *= w
+            Q[2][1] *= w
+            Q[0][2] *= w
+            Q[1][2] *= w
+            Q[2][2] = w * w * var_w + (1.0 - w) ** 2 * var_g
+        o.interval = (vx, vy, wz, tuple(tuple(r) for r in Q), o.t - start)
+        return o.interval
 
     def _propagate(self, x: np.ndarray, P: np.ndarray, t0: float, t1: float) -> Tuple[np.ndarray, np.ndarray]:
         """Predict from t0 to t1 along the odometry schedule (no odometry input strictly inside)."""
@@ -475,80 +618,118 @@ class PoseFilter:
             return x, P
         i = bisect.bisect_left(self._odom_t, t1)
         if i < len(self._odom):
-            twist, Q, dt_int = self._interval_twist(i)
-            piece = t1 - t0
-            timing = None
-            if dt_int > self.config.max_odom_interval and piece < dt_int * (1.0 - 1e-9):
-                # A gap split by a fix: where in the gap the motion happened is unknown.
-                inc, _ = body_increment(twist, dt_int)
-                f = piece / dt_int
-                timing = _spread(x[2], inc, 0.5 * max(f, 1.0 - f))
-            # The twist error is one draw for the whole interval: a piece of length dt gets the
-            # share dt/dt_int of its variance so split intervals add up to the same total.
-            return self._predict_segment(x, P, twist, Q, piece, dt_int / piece, timing)
+            return self._propagate_in(i, x, P, t0, t1)
+        cfg = self.config
         if not self._odom:
-            return self._predict_segment(x, P, np.zeros(3), np.zeros((3, 3)), t1 - t0, 1.0)
+            return self._predict(x, P, _motion(0.0, 0.0, 0.0, _ZERO_Q, t1 - t0, 1.0, cfg))
         last = len(self._odom) - 1
-        twist, Q, _ = self._interval_twist(last)
-        hold_end = self._odom[last].t + self.config.hold
+        vx, vy, wz, Q, _ = self._interval(last)
+        hold_end = self._odom[last].t + cfg.hold
         if t0 < hold_end:
             t_mid = min(t1, hold_end)
-            inc, _ = body_increment(twist, t_mid - t0)
+            mo = _motion(vx, vy, wz, Q, t_mid - t0, 1.0, cfg)
             # Provisional: the robot may have stopped at once or kept going.
-            x, P = self._predict_segment(x, P, twist, Q, t_mid - t0, 1.0, _spread(x[2], inc, 0.5))
+            x, P = self._predict(x, P, mo, _spread(x.item(2), mo[0], mo[1], mo[2], 0.5))
             t0 = t_mid
         if t1 > t0:
-            x, P = self._predict_segment(x, P, np.zeros(3), np.zeros((3, 3)), t1 - t0, 1.0)
+            x, P = self._predict(x, P, _motion(0.0, 0.0, 0.0, _ZERO_Q, t1 - t0, 1.0, cfg))
         return x, P
 
-    def _predict_segment(self, x, P, twist, Q_twist, dt: float, q_scale: float, extra: Optional[np.ndarray] = None):
-        cfg = self.config
-        inc, D = body_increment(twist, dt)
-        phi = float(x[2])
+    def _propagate_in(self, i: int, x: np.ndarray, P: np.ndarray, t0: float, t1: float) -> Tuple[np.ndarray, np.ndarray]:
+        """Predict from t0 to t1 inside odometry interval i (t0 < t1 <= its end)."""
+        o = self._odom[i]
+        piece_key = (t0, t1)
+        mo = o.pieces.get(piece_key)
+        vx, vy, wz, Q, dt_int = self._interval(i)
+        piece = t1 - t0
+        if mo is None:
+            # The twist error is one draw for the whole interval: a piece of length dt gets the
+            # share dt/dt_int of its variance so split intervals add up to the same total.
+            mo = _motion(vx, vy, wz, Q, piece, dt_int / piece, self.config)
+            o.pieces[piece_key] = mo
+        if dt_int > self.config.max_odom_interval and piece < dt_int * (1.0 - 1e-9):
+            # A gap split by a fix: where in the gap the motion happened is unknown.
+            A, B, _, _ = arc_coefficients(wz * dt_int)
+            f = piece / dt_int
+            extra = _spread(x.item(2), dt_int * (A * vx - B * vy), dt_int * (B * vx + A * vy), wz * dt_int,
+                            0.5 * max(f, 1.0 - f))
+            return self._predict(x, P, mo, extra)
+        return self._predict(x, P, mo)
+
+    def _predict(self, x: np.ndarray, P: np.ndarray, mo: Motion,
+                 extra: Optional[Extra] = None) -> Tuple[np.ndarray, np.ndarray]:
+        """One filterpy prediction of motion ``mo`` from (x, P); F and Q built from floats."""
+        i0, i1, i2, a, b, e, d, f, g, var_pos, var_phi = mo
+        phi = x.item(2)
         c, s = math.cos(phi), math.sin(phi)
-        Rg = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        G = Rg @ D
-        dist = math.hypot(inc[0], inc[1])
-        turn = abs(inc[2])
-        var_pos = cfg.pos_noise_density * dt + cfg.slip_per_metre * dist
-        var_phi = cfg.heading_noise_density * dt + cfg.heading_slip_per_rad * turn + cfg.heading_slip_per_metre * dist
-        ekf = self._ekf
-        ekf.x = x.reshape(3, 1).copy()
-        ekf.P = P.copy()
-        ekf.F = np.array([[1.0, 0.0, -(s * inc[0] + c * inc[1])], [0.0, 1.0, c * inc[0] - s * inc[1]], [0.0, 0.0, 1.0]])
-        ekf.Q = q_scale * (G @ Q_twist @ G.T) + np.diag([var_pos, var_pos, var_phi])
+        # Q = Rg (D Q_twist D^T) Rg^T + floor: the start-frame noise turned into G.
+        n00, n01, n10, n11 = c * a - s * b, c * b - s * d, s * a + c * b, s * b + c * d
+        q00 = n00 * c - n01 * s + var_pos
+        q01 = n00 * s + n01 * c
+        q11 = n10 * s + n11 * c + var_pos
+        q02 = c * e - s * f
+        q12 = s * e + c * f
+        q22 = g + var_phi
         if extra is not None:
-            ekf.Q = ekf.Q + extra
-        ekf.predict(u=inc)
-        xn = ekf.x.reshape(3).copy()
-        xn[2] = wrap_angle(float(xn[2]))
-        return xn, 0.5 * (ekf.P + ekf.P.T)
+            q00, q01, q02 = q00 + extra[0], q01 + extra[1], q02 + extra[2]
+            q11, q12, q22 = q11 + extra[3], q12 + extra[4], q22 + extra[5]
+        gx, gy = c * i0 - s * i1, s * i0 + c * i1
+        ekf = self._ekf
+        ekf.x = x  # filterpy replaces x and P with new arrays, so the stored states need no copies
+        ekf.P = P
+        ekf.F = np.array([[1.0, 0.0, -gy], [0.0, 1.0, gx], [0.0, 0.0, 1.0]])
+        ekf.Q = np.array([[q00, q01, q02], [q01, q11, q12], [q02, q12, q22]])
+        ekf.predict(u=(gx, gy, i2))
+        Pn = ekf.P
+        return ekf.x, 0.5 * (Pn + Pn.T)
+
+    def _apply_plane(self, x: np.ndarray, P: np.ndarray, model: tuple):
+        n0, n1, dg, ang, z0, z1, r00, r01, r10, r11, H, R, z, what = model
+        px, py, phi = x.item(0), x.item(1), x.item(2)
+        y0 = z0 - (n0 * px + n1 * py + dg)
+        y1 = wrap_angle(z1 - wrap_angle(ang - phi))
+        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P.tolist()
+        # S = H P H^T + R with H = [[n0, n1, 0], [0, 0, -1]]
+        h0, h1, h2 = n0 * p00 + n1 * p10, n0 * p01 + n1 * p11, n0 * p02 + n1 * p12
+        s00 = h0 * n0 + h1 * n1 + r00
+        s01 = r01 - h2
+        s10 = r10 - (p20 * n0 + p21 * n1)
+        s11 = p22 + r11
+        det = s00 * s11 - s01 * s10
+        if det == 0.0 or not math.isfinite(det):
+            return x, P, UpdateResult(False, math.nan, f"{what}: singular innovation covariance")
+        d2 = (y0 * (s11 * y0 - s01 * y1) + y1 * (s00 * y1 - s10 * y0)) / det
+        threshold = self._gate2
+        if not math.isfinite(d2) or d2 > threshold:
+            return x, P, UpdateResult(False, d2, f"{what}: gated out (d^2 = {d2:.1f} > {threshold:.1f})")
+
+        def hx(st):
+            return np.array([[n0 * st.item(0) + n1 * st.item(1) + dg], [wrap_angle(ang - st.item(2))]])
+
+        ekf = self._ekf
+        ekf.x = x
+        ekf.P = P
+        ekf.update(z, HJacobian=lambda st: H, Hx=hx, R=R, residual=_wrapped_residual)
+        xn = ekf.x  # a new array: filterpy keeps its own copy as x_post
+        xn[2, 0] = wrap_angle(xn.item(2))
+        Pn = ekf.P
+        return xn, 0.5 * (Pn + Pn.T), UpdateResult(True, d2, "")
 
     def _apply_fix(self, x: np.ndarray, P: np.ndarray, fix: _Fix):
+        """An absolute pose fix (rare: an operator, a global solve); the plain numpy path."""
         ekf = self._ekf
-        if fix.plane is not None:
-            meas = fix.plane
-            H = meas.jacobian()
-            R = np.asarray(meas.R, dtype=float)
-            y = meas.residual(x[0], x[1], x[2])
-            z = np.asarray(meas.z, dtype=float).reshape(2, 1)
+        xv = x.reshape(3)
+        H = np.eye(3)
+        R = fix.pose_cov
+        y = fix.pose - xv
+        y[2] = wrap_angle(float(y[2]))
+        # Unwrap the target angle next to the state so the residual is the short way round.
+        z = (xv + y).reshape(3, 1)
 
-            def hx(s):
-                return meas.predict(s[0, 0], s[1, 0], s[2, 0]).reshape(2, 1)
+        def hx(s):
+            return s
 
-            threshold, what = self._gate2, f"plane {meas.plane_id} ({meas.camera})"
-        else:
-            H = np.eye(3)
-            R = fix.pose_cov
-            y = fix.pose - x
-            y[2] = wrap_angle(float(y[2]))
-            # Unwrap the target angle next to the state so the residual is the short way round.
-            z = (x + y).reshape(3, 1)
-
-            def hx(s):
-                return s
-
-            threshold, what = (self._gate3 if fix.gate else math.inf), "pose fix"
+        threshold, what = (self._gate3 if fix.gate else math.inf), "pose fix"
         S = H @ P @ H.T + R
         try:
             d2 = float(y @ np.linalg.solve(S, y))
@@ -556,9 +737,9 @@ class PoseFilter:
             return x, P, UpdateResult(False, math.nan, f"{what}: singular innovation covariance")
         if not math.isfinite(d2) or d2 > threshold:
             return x, P, UpdateResult(False, d2, f"{what}: gated out (d^2 = {d2:.1f} > {threshold:.1f})")
-        ekf.x = x.reshape(3, 1).copy()
+        ekf.x = x.copy()
         ekf.P = P.copy()
         ekf.update(z, HJacobian=lambda s: H, Hx=hx, R=R, residual=_wrapped_residual)
-        xn = ekf.x.reshape(3).copy()
-        xn[2] = wrap_angle(float(xn[2]))
+        xn = ekf.x.copy()
+        xn[2, 0] = wrap_angle(float(xn[2, 0]))
         return xn, 0.5 * (ekf.P + ekf.P.T), UpdateResult(True, d2, "")

@@ -35,7 +35,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass
-from typing import Deque, List, Optional, Tuple
+from typing import Deque, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -47,6 +47,23 @@ DEGRADED = "degraded"
 LOST = "lost"
 _RANK = {LOCALIZED: 0, DEGRADED: 1, LOST: 2}
 DEFAULT_RISK = 1e-3
+
+
+_MULTIPLIERS: Dict[float, Tuple[float, float]] = {}
+
+
+def _multipliers(risk: float) -> Tuple[float, float]:
+    """``protection_multipliers`` for the few risks in use, memoised: it runs every control tick."""
+    k = _MULTIPLIERS.get(risk)
+    if k is None:
+        k = _MULTIPLIERS[risk] = protection_multipliers(risk)
+    return k
+
+
+def _largest_eigenvalue2(a: float, b: float, d: float) -> float:
+    """Largest eigenvalue of the symmetric 2x2 [[a, b], [b, d]] in closed form (no LAPACK call per tick)."""
+    half = 0.5 * (a - d)
+    return 0.5 * (a + d) + math.sqrt(half * half + b * b)
 
 
 @dataclass(frozen=True)
@@ -66,13 +83,14 @@ class FusedProtection:
 
     def levels(self, P: np.ndarray) -> Tuple[float, float]:
         """(horizontal m, heading rad) protection levels of a fused pose with covariance P."""
-        k_h, k_phi = protection_multipliers(self.risk)
+        k_h, k_phi = _multipliers(self.risk)
         C = np.asarray(P, float)
         if self.systematic_cov is not None:
             C = C + np.asarray(self.systematic_cov, float)
-        lam = float(np.linalg.eigvalsh(0.5 * (C[:2, :2] + C[:2, :2].T))[-1])
+        (a, b, _), (c, d, _), (_, _, e) = C.tolist()
+        lam = _largest_eigenvalue2(a, 0.5 * (b + c), d)
         return (k_h * math.sqrt(max(lam, 0.0)) + self.separation_h,
-                k_phi * math.sqrt(max(float(C[2, 2]), 0.0)) + self.separation_heading)
+                k_phi * math.sqrt(max(e, 0.0)) + self.separation_heading)
 
 
 @dataclass(frozen=True)
@@ -108,6 +126,7 @@ class QualityMonitor:
         self.config = config or QualityConfig()
         self._last_accepted: Optional[float] = None
         self._decisions: Deque[Tuple[float, bool]] = collections.deque()
+        self._rejected = 0  # refusals among _decisions, kept as they come and go
         self._state = LOST
         self._reason = "no pose yet"
         self._fresh = True
@@ -120,6 +139,7 @@ class QualityMonitor:
         """A pose was set (initial pose, operator fix): it counts as fresh localization."""
         self._last_accepted = t if self._last_accepted is None else max(self._last_accepted, t)
         self._decisions.clear()
+        self._rejected = 0
         self._state = DEGRADED  # until the next evaluation judges the numbers
         self._reason = "pose set"
         self._fresh = True  # no hysteresis from before the reset
@@ -127,6 +147,8 @@ class QualityMonitor:
     def note_update(self, t: float, accepted: bool) -> None:
         """A plane measurement captured at t went through the gate (accepted or not)."""
         self._decisions.append((t, bool(accepted)))
+        if not accepted:
+            self._rejected += 1
         if accepted and (self._last_accepted is None or t > self._last_accepted):
             self._last_accepted = t
 
@@ -134,17 +156,24 @@ class QualityMonitor:
         """The state at t from the fused covariance P and what the last accepted localization adds
         to its protection levels (None: the covariance alone)."""
         cfg = self.config
-        while self._decisions and self._decisions[0][0] < t - cfg.rejection_window:
-            self._decisions.popleft()
-        n = len(self._decisions)
-        rejected = sum(1 for _, ok in self._decisions if not ok)
+        decisions = self._decisions
+        while decisions and decisions[0][0] < t - cfg.rejection_window:
+            if not decisions.popleft()[1]:
+                self._rejected -= 1
+        n = len(decisions)
+        rejected = self._rejected
         ratio = rejected / n if n >= cfg.min_decisions else math.nan
         age = math.inf if self._last_accepted is None else max(0.0, t - self._last_accepted)
         P = np.asarray(P, dtype=float)
-        if P.shape != (3, 3) or not np.isfinite(P).all():
+        rows = P.tolist() if P.shape == (3, 3) else None
+        if rows is None or not all(math.isfinite(v) for row in rows for v in row):
             return self._set(LOST, "covariance is not finite", math.inf, math.inf, age, ratio)
-        pos_std, axis = position_std_axis(P)
-        heading_std = math.sqrt(max(float(P[2, 2]), 0.0))
+        (p00, p01, _), (p10, p11, _), (_, _, p22) = rows
+        pos_std = math.sqrt(max(_largest_eigenvalue2(p00, 0.5 * (p01 + p10), p11), 0.0))
+        axis = math.nan  # only a reason names it, and only above a threshold
+        if pos_std > 0.5 * min(cfg.localized_pos_std, cfg.lost_pos_std) * min(cfg.hysteresis, 1.0):
+            pos_std, axis = position_std_axis(P)
+        heading_std = math.sqrt(max(p22, 0.0))
         hpl, vpl = (protection or FusedProtection()).levels(P)
 
         # Thresholds are tightened by the hysteresis factor for the states we are trying to leave.

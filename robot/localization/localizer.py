@@ -186,6 +186,7 @@ class _Verdict:
     # outlines in the image are where it predicts them up to the statistical error alone.
     cov_next: Optional[np.ndarray] = None
     roi_next: Optional[np.ndarray] = None
+    checker: Optional[Checker] = None  # what solved it, for the final checks on the same walls
 
 
 class Localizer:
@@ -203,6 +204,7 @@ class Localizer:
         self.last_roi_labels: Dict[str, np.ndarray] = {}
         self._geometry: Dict[Tuple, _FrameGeometry] = {}
         self._extent: Dict[int, Tuple[float, float]] = {}
+        self._mounts: Dict[int, Tuple[CameraConfig, np.ndarray]] = {}
 
     def localize(self, frames: Sequence[DepthFrame], coarse: Sequence[float],
                  coarse_cov: Optional[np.ndarray] = None, method: str = "joint") -> LocalizationResult:
@@ -228,7 +230,7 @@ class Localizer:
             roi_cov = cov if verdict.roi_next is None else verdict.roi_next
         # Leave-one-out agreement and protection levels; a wall that alone breaks agreement is left out.
         if verdict.integrity is None and verdict.status != "no_planes":
-            verdict = self._solve(req, fits, final=True)
+            verdict = self._solve(req, fits, final=True, checker=verdict.checker)
         # Predicted walls whose ROI shows depth where the pose admits none count against it.
         verdict = self._weigh_evidence(req, verdict, fits)
         # The pose, its protection levels, the fusion's measurements and the per-plane report.
@@ -263,24 +265,31 @@ class Localizer:
             out += self._fit_frame(frame, cam, pose, cov, roi_cov, starts)
         return out
 
-    def _solve(self, req: _Request, fits: Sequence[_WallFit], final: bool = True) -> _Verdict:
+    def _solve(self, req: _Request, fits: Sequence[_WallFit], final: bool = True,
+               checker: Optional[Checker] = None) -> _Verdict:
         """The pose from the fitted walls; ``final``: with exclusion of a wall that alone breaks the
         others' agreement, and the protection levels of what is left. Otherwise (a pass that only
-        steers the next one's ROIs) the full checks run only if the walls disagree as a whole."""
+        steers the next one's ROIs) the full checks run only if the walls disagree as a whole.
+        ``checker``: the one a non-final solve of these same fits built (its stack and solutions
+        are reused)."""
         p = self.params
         cand = [w for w in fits if w.observation is not None]
         if not cand:
             return _Verdict(np.array(req.coarse), req.cov.copy(), "no_planes",
                             [direction_label(np.eye(3)[i]) for i in range(3)], [])
-        stack = Stack([w.observation for w in cand], self.errors)
-        checker = Checker(stack, req.coarse, req.cov, p.unobservable_std, p.false_alarm, p.integrity_risk)
+        if checker is None or len(checker.stack.obs) != len(cand) or any(
+                o is not w.observation for o, w in zip(checker.stack.obs, cand)):
+            stack = Stack([w.observation for w in cand], self.errors)
+            checker = Checker(stack, req.coarse, req.cov, p.unobservable_std, p.false_alarm, p.integrity_risk)
+        stack = checker.stack
         if not final:
             sol = checker.solve(range(len(cand)))
             if checker.agree_as_a_whole(sol):
                 cov_next = sol.covariance(req.cov, 0.0)
                 status = "ok" if sol.fully_observed else "degenerate"
                 return _Verdict(sol.x.copy(), sol.covariance(req.cov), status, [], cand, None, stack,
-                                cov_next=cov_next, roi_next=cov_next - sol.A @ stack.R_sys @ sol.A.T)
+                                cov_next=cov_next, roi_next=cov_next - sol.A @ stack.R_sys @ sol.A.T,
+                                checker=checker)
         integ = checker.check()
         out = {j for j, _ in integ.excluded}
         for j, why in integ.excluded:
@@ -393,6 +402,18 @@ class Localizer:
                                                        np.array(cols, float), np.array(rows, float))
         return geo
 
+    def _T_robot_camera(self, cam: CameraConfig) -> np.ndarray:
+        """cam.T_robot_camera, kept per camera object: the property builds three rotations on every
+        access. Keyed by identity (a recalibrated camera is a new object), read-only."""
+        hit = self._mounts.get(id(cam))
+        if hit is None or hit[0] is not cam:
+            if len(self._mounts) > 32:  # cameras replaced over and over (recalibrations): forget the old ones
+                self._mounts.clear()
+            T = cam.T_robot_camera
+            T.flags.writeable = False
+            hit = self._mounts[id(cam)] = (cam, T)
+        return hit[1]
+
     def _fit_params(self, geo: _FrameGeometry, depth_unit: float, cov: np.ndarray, n_ground: np.ndarray,
                     up_camera: Optional[np.ndarray] = None, d_pred: float = 0.0,
                     tolerance: Optional[float] = None) -> FitParams:
@@ -461,8 +482,9 @@ class Localizer:
         h, w = frame.depth.shape
         geo = self.frame_geometry(cam, frame.K, w, h)
         stride = geo.grid.stride
+        T_robot_camera = self._T_robot_camera(cam)
         T_ground_robot = pose_to_T_ground_robot(*pose)
-        T_ground_camera = T_ground_robot @ cam.T_robot_camera
+        T_ground_camera = T_ground_robot @ T_robot_camera
         candidates = self.index.candidates(T_ground_camera[:3, 3], p.max_range)
         views = self.plane_rois(geo, T_ground_camera, roi_cov)
         if self.keep_roi_labels:
@@ -471,8 +493,11 @@ class Localizer:
                 labels[view.roi_rows, view.roi_cols] = view.plane_index
             self.last_roi_labels[cam.name] = labels
         full_px = (stride / geo.scale) ** 2  # configured-resolution pixels per grid pixel
-        up_camera = cam.T_robot_camera[2, :3]  # the robot's z axis in the camera frame: R_RC^T e_z
+        up_camera = T_robot_camera[2, :3]  # the robot's z axis in the camera frame: R_RC^T e_z
         inflation = self.errors.correlation_inflation(stride / geo.scale)
+        depth_scale = float(frame.depth_scale)
+        flat = frame.depth.ravel() if frame.depth.flags.c_contiguous else None
+        row_step = stride * w
         out: List[_WallFit] = []
         for view in views:
             if view.pixels == 0 and view.box[2] >= view.box[0]:
@@ -483,11 +508,16 @@ class Localizer:
                 out.append(_WallFit(PlaneReport(view.plane_id, cam.name, 0, None, None, False,
                                                 f"ROI too small after occlusion and margin ({len(rr)} grid pixels)")))
                 continue
-            z = frame.depth[rr * stride, cc * stride] * float(frame.depth_scale)
+            # One flat gather costs two thirds of a 2-D fancy index (the same pixels).
+            if flat is not None:
+                z = flat.take(rr * row_step + cc * stride) * depth_scale
+            else:
+                z = frame.depth[rr * stride, cc * stride] * depth_scale
             n_roi = len(z)
             ok = (z > p.min_range) & (z < p.max_range)
-            z, rr, cc = z[ok], rr[ok], cc[ok]
-            rx, ry = geo.ray_cols[cc], geo.ray_rows[rr]
+            if np.count_nonzero(ok) < n_roi:
+                z, rr, cc = z[ok], rr[ok], cc[ok]
+            rx, ry = geo.ray_cols.take(cc), geo.ray_rows.take(rr)
             params = self._fit_params(geo, float(frame.depth_scale), cov, plane.normal, up_camera,
                                       abs(float(view.pi_camera[3])), plane.tolerance)
             fit = fit_plane(rx, ry, z, view.pi_camera, params, starts.get((cam.name, plane.id)))
@@ -500,7 +530,7 @@ class Localizer:
                 out.append(_WallFit(PlaneReport(view.plane_id, cam.name, fit.inliers, None, None, False, reason, len(z)),
                                     evidence=evidence))
                 continue
-            obs = ObservedPlane(plane.id, cam.name, plane.normal, plane.d, fit, cam.T_robot_camera)
+            obs = ObservedPlane(plane.id, cam.name, plane.normal, plane.d, fit, T_robot_camera)
             m = fit.inlier_mask
             rival = self._rival_plane(obs, view.plane_index, candidates, pose, cov,
                                       lambda m=m, rx=rx, ry=ry, z=z: (rx[m], ry[m], z[m]))
@@ -519,7 +549,7 @@ class Localizer:
             report = PlaneReport(plane.id, cam.name, fit.inliers, [round(float(c), 6) for c in obs.n_robot],
                                  round(obs.d_robot, 6), meas is not None,
                                  "ok" if meas is not None else "not a wall: its normal has no heading", len(z),
-                                 [float(c) for c in cam.T_robot_camera[:3, :3] @ fit.centroid + cam.T_robot_camera[:3, 3]])
+                                 [float(c) for c in T_robot_camera[:3, :3] @ fit.centroid + T_robot_camera[:3, 3]])
             out.append(_WallFit(report, obs, meas, "", frame.t_capture))
         return out
 

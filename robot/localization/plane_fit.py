@@ -175,6 +175,31 @@ def depth_sigma(z: np.ndarray, params: FitParams) -> np.ndarray:
     return s
 
 
+def clip_unit(v) -> float:
+    """``v`` clipped to [-1, 1] as a float, NaN kept (np.clip on a scalar costs ten times more)."""
+    v = float(v)
+    return -1.0 if v < -1.0 else (1.0 if v > 1.0 else v)
+
+
+def depth_sigma_scalar(z: float, params: FitParams) -> float:
+    """:func:`depth_sigma` of one depth, in floats (the same operations, the same rounding)."""
+    s = z * z * (params.noise_subpixel / params.noise_fx_b)
+    if params.depth_unit > 0:
+        return math.sqrt(s * s + params.depth_unit**2 / 12.0)
+    return s
+
+
+def median(a: np.ndarray) -> float:
+    """np.median of a 1-D float array without NaNs (the same values: the middle order statistics
+    and their mean), without np.median's generic machinery."""
+    n = len(a)
+    h = n // 2
+    if n % 2:
+        return float(np.partition(a, h)[h])
+    p = np.partition(a, (h - 1, h))
+    return float((p[h - 1] + p[h]) / 2.0)
+
+
 def cross(a, b) -> np.ndarray:
     """a x b for 3-vectors (written out: np.cross costs more than the math)."""
     a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
@@ -349,7 +374,7 @@ def _find_surfaces(sub: _Subsample, params: FitParams) -> List[_Surface]:
 def _tilt(up: Optional[np.ndarray], n: np.ndarray, n_pred: np.ndarray) -> float:
     if up is None:
         return 0.0
-    return abs(math.asin(float(np.clip(up @ n, -1.0, 1.0))) - math.asin(float(np.clip(up @ n_pred, -1.0, 1.0))))
+    return abs(math.asin(clip_unit(up @ n)) - math.asin(clip_unit(up @ n_pred)))
 
 
 def _behind(sub: _Subsample, n: np.ndarray, d: float, pi_pred: np.ndarray, params: FitParams) -> float:
@@ -448,11 +473,11 @@ def _same_surface(a: _Surface, b: _Surface, sub: _Subsample) -> bool:
     """Two fits of one surface: parallel within 2 deg and within the inlier band of each other."""
     if float(a.n @ b.n) < math.cos(math.radians(2.0)):
         return False
-    return abs(a.d - b.d) < 2.0 * float(np.median(sub.thr))
+    return abs(a.d - b.d) < 2.0 * median(sub.thr)
 
 
 def _admissible(s: _Surface, pi_pred: np.ndarray, up: Optional[np.ndarray], params: FitParams) -> bool:
-    ang = math.acos(float(np.clip(s.n @ pi_pred[:3], -1.0, 1.0)))
+    ang = math.acos(clip_unit(s.n @ pi_pred[:3]))
     return (ang <= params.angle_gate and _tilt(up, s.n, pi_pred[:3]) <= params.tilt_gate
             and abs(s.d - float(pi_pred[3])) <= params.offset_gate)
 
@@ -476,7 +501,7 @@ def identify(sub: _Subsample, pi_pred: np.ndarray, params: FitParams) -> _Identi
         # A large surface facing the way the wall does, only at an offset the prior does not admit:
         # the wall is there, not where the pose says.
         m = max(len(sub.z), 1)
-        parallel = [s for s in surfaces if math.acos(float(np.clip(s.n @ n_pred, -1.0, 1.0))) <= params.angle_gate
+        parallel = [s for s in surfaces if math.acos(clip_unit(s.n @ n_pred)) <= params.angle_gate
                     and _tilt(up, s.n, n_pred) <= params.tilt_gate and s.mask.sum() >= params.min_inlier_fraction * m]
         if parallel:
             s = max(parallel, key=lambda t: int(t.mask.sum()))
@@ -533,7 +558,7 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     up = None if params.up is None else np.asarray(params.up, float)
     if start is not None:
         n, d = np.asarray(start[0], float), float(start[1])
-        if not (math.acos(float(np.clip(n @ n_pred, -1.0, 1.0))) <= params.angle_gate
+        if not (math.acos(clip_unit(n @ n_pred)) <= params.angle_gate
                 and _tilt(up, n, n_pred) <= params.tilt_gate and abs(d - d_pred) <= params.offset_gate):
             start = None
     surfaces = 0
@@ -570,7 +595,7 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
         if start is not None:  # the last pass's surface is not the rear-most one here: identify afresh
             return fit_plane(rx, ry, z, pi_pred, params)
         return PlaneFit(False, why, n, d, count, surfaces=surfaces)
-    ang = math.acos(float(np.clip(n @ n_pred, -1.0, 1.0)))
+    ang = math.acos(clip_unit(n @ n_pred))
     off = d - d_pred
     if count < params.min_inliers:
         return PlaneFit(False, f"too few inliers ({count} < {params.min_inliers}): the wall's visible part is too small",
@@ -631,7 +656,7 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     # Scatter the noise model does not explain does not average down: if the surface is thicker
     # than the noise, where in that thickness the wall is stays unknown. (chi2_red of a pure noise
     # fit is a little under 1: the band and the Huber loss trim its tails.)
-    sig_n = float(depth_sigma(np.array([math.sqrt(z2)]), params)[0]) * abs(float(n[2]))
+    sig_n = depth_sigma_scalar(math.sqrt(z2), params) * abs(float(n[2]))
     excess = max(chi2_red - 1.1, 0.0) * sig_n * sig_n
     return PlaneFit(True, "ok", n, d, count, mask, info, cov, B, math.sqrt(chi2_red), ang, off, "", surfaces, excess,
                     centroid, z2, lateral, vertical)
@@ -650,7 +675,7 @@ def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: 
     if k < 40:
         return None
     res = n @ P_in + d  # signed distance of each inlier from the plane
-    a = along - float(np.median(along))  # halves of equal support: a wedge turns them against each other
+    a = along - median(along)  # halves of equal support: a wedge turns them against each other
     side = (a > 0).astype(np.intp)
     # Per half: count and the sums a least-squares slope needs, in one pass each.
     cnt = np.bincount(side, minlength=2).astype(float)
@@ -663,7 +688,7 @@ def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: 
         return None
     slopes = (sar / cnt - sa * sr / (cnt * cnt)) / var
     spreads, counts = np.sqrt(var), cnt
-    sigma = float(depth_sigma(np.array([math.sqrt(z2)]), params)[0]) * abs(float(n[2]))
+    sigma = depth_sigma_scalar(math.sqrt(z2), params) * abs(float(n[2]))
     sys_z = params.systematic_px / params.noise_fx_b * z2 * abs(float(n[2]))
     # Samples are several matcher windows apart: nearly independent (allow 1.5 times their spread).
     noise = math.hypot(*(1.5 * sigma / (math.sqrt(c) * sp) for c, sp in zip(counts, spreads)))
