@@ -31,6 +31,7 @@ test-only: $(STAMP)
 # The benchmark's floor (numba) and anchors (Open3D, small_gicp) are workstation-only extras.
 bench: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench,perf]" || echo "note: the bench/perf extras did not install; their rows say so"
+	if [ -x .venv38/bin/python ]; then .venv38/bin/python -m pip install -q -e ".[perf]" || echo "note: numba did not install under Python 3.8"; fi
 	$(PY) scripts/benchmark.py
 
 clean:

@@ -22,6 +22,7 @@ import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+from typing import Dict  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -51,34 +52,64 @@ def cpu_name() -> str:
     return platform.processor() or "unknown"
 
 
+SECTION_START = "<!-- section {name} -->"
+SECTION_END = "<!-- end of section {name} -->"
+
+
+def split_sections(text: str) -> Dict[str, str]:
+    """The sections of an existing BENCHMARKS.md by module name, each with its markers."""
+    out: Dict[str, str] = {}
+    for name in SECTIONS:
+        start, end = SECTION_START.format(name=name), SECTION_END.format(name=name)
+        i, j = text.find(start), text.find(end)
+        if i >= 0 and j > i:
+            out[name] = text[i:j + len(end)]
+    return out
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--quick", action="store_true", help="fewer repetitions (for a smoke run; do not publish)")
-    ap.add_argument("--only", nargs="*", help="section module names to run")
+    ap.add_argument("--only", nargs="*", help="section module names to run; with an existing --out, the other "
+                                              "sections are kept as they are, each with the commit it was run at")
     ap.add_argument("--out", default=str(ROOT / "BENCHMARKS.md"))
     args = ap.parse_args()
+    unknown = [n for n in (args.only or []) if n not in SECTIONS]
+    if unknown:
+        ap.error(f"unknown section(s) {', '.join(unknown)} (choose from {', '.join(SECTIONS)})")
+    commit = git_describe()
+    kept = split_sections(Path(args.out).read_text()) if args.only and Path(args.out).exists() else {}
     header = [
         "# Benchmarks",
         "",
-        "Written by `scripts/benchmark.py` (`make bench`); do not edit by hand.",
+        "Written by `scripts/benchmark.py` (`make bench`); do not edit by hand. Each section ends with the "
+        "commit it was run at and its mode; `--only NAME` runs one section again and keeps the others.",
         "",
-        f"- commit: {git_describe()}",
-        f"- date: {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}",
+        f"- last run: commit {commit}, {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}, "
+        f"{'quick (smoke run)' if args.quick else 'full'}",
         f"- machine: {cpu_name()}, {os.cpu_count()} logical cores, Python {platform.python_version()}, "
-        f"numpy {__import__('numpy').__version__}, OpenCV {__import__('cv2').__version__}",
-        f"- mode: {'quick (smoke run)' if args.quick else 'full'}; BLAS threads pinned to 1",
+        f"numpy {__import__('numpy').__version__}, OpenCV {__import__('cv2').__version__}; BLAS threads pinned to 1",
         "",
     ]
     body = []
-    for name in args.only or SECTIONS:
-        try:
-            mod = importlib.import_module(name)
-        except ImportError as e:
-            body += [f"## {name}", "", f"_not run: {e}_", ""]
+    run = args.only or SECTIONS
+    for name in SECTIONS:
+        if name not in run:
+            if name in kept:
+                body += [kept[name], ""]
             continue
         t0 = time.perf_counter()
         print(f"running {name} ...", file=sys.stderr, flush=True)
-        body += [getattr(mod, "section", mod.run)(quick=args.quick), "", f"_{name}: {time.perf_counter() - t0:.0f} s_", ""]
+        try:
+            mod = importlib.import_module(name)
+            text = getattr(mod, "section", mod.run)(quick=args.quick)
+        except ImportError as e:
+            text = f"## {name}\n\n_not run: {e}_"
+        stamp = (f"_{name}: {time.perf_counter() - t0:.0f} s, commit {commit}, "
+                 f"{'quick' if args.quick else 'full'}, {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}_")
+        body += [SECTION_START.format(name=name), text, "", stamp, SECTION_END.format(name=name), ""]
+        # Written after every section: a run cut short keeps what it measured.
+        Path(args.out).write_text("\n".join(header + body) + "\n")
     Path(args.out).write_text("\n".join(header + body) + "\n")
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
