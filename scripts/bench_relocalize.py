@@ -29,6 +29,7 @@ from drivers.sim.building import free_space_poses, grid_for_planes, room_grid_ma
 from drivers.sim.render import SimScene, render_depth_frame  # noqa: E402
 from robot.base.geometry import pose_to_T_ground_robot  # noqa: E402
 from robot.config import load_robot_config  # noqa: E402
+from robot.control.recovery import views_from_latest  # noqa: E402
 from robot.localization.relocalize import AMBIGUOUS, UNIQUE, Relocalizer  # noqa: E402
 from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views  # noqa: E402
 from robot.maps.plane_map import load_plane_map  # noqa: E402
@@ -92,35 +93,53 @@ def frames_at(scene, pose, rng, noise):
     return [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=noise) for c in ROBOT.cameras]
 
 
-def run_map(name: str, n: int, seed: int, noise, turn: bool) -> Tuple[Dict[str, int], Dict[str, int], List[float], str]:
+def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[str, int], Dict[str, int], Dict[str, int],
+                                                          List[float], List[int], str]:
+    """One stationary view per pose and, where it is not unique, the in-place turn of the recovery
+    supervisor (recovery.turn_in_place): views at heading + k * turn_step_deg from the same position,
+    each with its odometry heading (0.2 deg of error per step, accumulating), until unique or
+    max_turn_deg; the verdict is for the last view's pose, as the robot uses it."""
     plane_map = load_plane_map(ROOT / "config" / "maps" / f"{name}.yaml")
     rel = Relocalizer(ROBOT, plane_map)
     rng = np.random.default_rng(seed)
     poses = free_space_poses(plane_map, n, rng, z=0.15)
+    step = math.radians(ROBOT.recovery.turn_step_deg)
+    max_turn = math.radians(360.0)  # the issue's target: a turn of up to 360 deg
     counts: Dict[str, int] = {}
     counts_two: Dict[str, int] = {}
+    turn: Dict[str, int] = {}
+    turn_two: Dict[str, int] = {}
     times: List[float] = []
+    views_used: List[int] = []
     clutter_desc = ""
     for pose in poses:
         pose = (float(pose[0]), float(pose[1]), float(pose[2]))
         clutter, clutter_desc = _clutter(plane_map, rng, [pose[:2]])
         scene = SimScene(plane_map, clutter=clutter)
         frames = frames_at(scene, pose, rng, noise)
-        more = []
-        if turn:
-            for k in (1, 2, 3):
-                turned = (pose[0], pose[1], pose[2] + k * math.pi / 2)
-                # Odometry of an in-place turn: the heading with 0.2 deg of error, no translation.
-                rel_pose = (0.0, 0.0, k * math.pi / 2 + math.radians(rng.normal(0.0, 0.2)))
-                more.append((frames_at(scene, turned, rng, noise), rel_pose))
         t0 = time.process_time()
-        res = rel.relocalize(frames, more_views=more, seed=int(rng.integers(1 << 30)))
+        res = rel.relocalize(frames, seed=int(rng.integers(1 << 30)))
         times.append(time.process_time() - t0)
-        k = classify(res, pose)
-        counts[k] = counts.get(k, 0) + 1
-        if two_walls_visible(plane_map, pose, rel.index):
-            counts_two[k] = counts_two.get(k, 0) + 1
-    return counts, counts_two, times, clutter_desc
+        k_single = classify(res, pose)
+        two = two_walls_visible(plane_map, pose, rel.index)
+        counts[k_single] = counts.get(k_single, 0) + 1
+        k_turn, views = k_single, [(frames, (0.0, 0.0, 0.0))]
+        odo_phi = 0.0
+        k = 1
+        while res.verdict != UNIQUE and k * step <= max_turn + 1e-9 and k * step < 2 * math.pi - 1e-9:
+            turned = (pose[0], pose[1], pose[2] + k * step)
+            odo_phi += step + math.radians(rng.normal(0.0, 0.2))
+            views.append((frames_at(scene, turned, rng, noise), (0.0, 0.0, odo_phi)))
+            first, more = views_from_latest(views)
+            res = rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30)))
+            k_turn = classify(res, turned)
+            k += 1
+        views_used.append(len(views))
+        turn[k_turn] = turn.get(k_turn, 0) + 1
+        if two:
+            counts_two[k_single] = counts_two.get(k_single, 0) + 1
+            turn_two[k_turn] = turn_two.get(k_turn, 0) + 1
+    return counts, counts_two, turn, turn_two, times, views_used, clutter_desc
 
 
 def _row(name, counts, total_label=""):
@@ -160,27 +179,39 @@ def run(quick: bool = False) -> str:
     n = 8 if quick else 130
     lines = ["## Global relocalization (`robotctl relocalize`)", "",
              f"Random free-space poses per map ({n} each), both cameras, {noise_name} camera model; one stationary "
-             "view, and (second table) the same with an in-place turn through 360 deg (four views, odometry "
-             "heading error 0.2 deg). CPU time per relocalization (`time.process_time`).", ""]
+             "view, and (second table) the same poses with the recovery's in-place turn where that view is not "
+             "unique (a view every turn step, odometry heading error 0.2 deg per step, relocalized with all "
+             "views until unique). CPU time per relocalization (`time.process_time`).", ""]
     header = ["| map | poses | correct unique | WRONG unique | ambiguous, truth in list | ambiguous, truth missing | none |",
               "|---|---|---|---|---|---|---|"]
     all_times = {}
-    for turn in (False, True):
-        lines += [f"**{'In-place turn (4 views)' if turn else 'One stationary view'}**", ""] + header
+    results = {}
+    desc = ""
+    for i, name in enumerate(MAPS):
+        counts, two, turn, turn_two, times, views, desc = run_map(name, n, 100 + i, noise)
+        results[name] = (counts, two, turn, turn_two, views)
+        all_times[(name, False)] = times
+    for turned in (False, True):
+        title = (f"In-place turn where one view is not unique (steps of {ROBOT.recovery.turn_step_deg:g} deg up to "
+                 "360 deg, until unique)" if turned else "One stationary view")
+        lines += [f"**{title}**", ""] + header
         tot: Dict[str, int] = {}
         tot_two: Dict[str, int] = {}
-        desc = ""
-        for i, name in enumerate(MAPS):
-            counts, two, times, desc = run_map(name, n if not turn else max(2, n // 3), 100 + i, noise, turn)
-            lines.append(_row(name, counts))
-            lines.append(_row(name, two, " (two walls in view)"))
-            for k, v in counts.items():
+        for name in MAPS:
+            counts, two, turn, turn_two, views = results[name]
+            c, t2 = (turn, turn_two) if turned else (counts, two)
+            lines.append(_row(name, c))
+            lines.append(_row(name, t2, " (two walls in view)"))
+            for k, v in c.items():
                 tot[k] = tot.get(k, 0) + v
-            for k, v in two.items():
+            for k, v in t2.items():
                 tot_two[k] = tot_two.get(k, 0) + v
-            all_times[(name, turn)] = times
         lines.append(_row("**all**", tot))
         lines.append(_row("**all** (two walls in view)", tot_two))
+        if turned:
+            views = [v for name in MAPS for v in results[name][4]]
+            lines += ["", f"Views per pose with the turn: median {np.median(views):.0f}, max {max(views)} "
+                      f"({sum(1 for v in views if v > 1)} of {len(views)} poses turned)."]
         lines += ["", f"Clutter: {desc}.", ""]
     lines += ["| map | median s | p95 s (one view) |", "|---|---|---|"]
     for name in MAPS:

@@ -478,12 +478,23 @@ def run_online(truth, seed=0, plane_map=ARENA, start=(0.5, 0.5, 0.0), segments=N
 
 
 def online_error(f: CalibrationFilter, truth) -> np.ndarray:
-    return f.mean - truth[f.index]
+    """The estimate's error; the synthetic world's walls are as drawn (their as-built states' truth is 0)."""
+    full = np.concatenate([truth, np.zeros(len(f.layout) - len(truth))])
+    return f.mean - full[f.index]
+
+
+def as_drawn(plane_map, tolerance: float = 5e-4):
+    """``plane_map`` whose walls say they are built as drawn (the synthetic world's are)."""
+    from robot.maps.plane_map import PlaneMap
+
+    return PlaneMap([replace(p, tolerance=tolerance) for p in plane_map.planes], plane_map.source)
 
 
 def test_the_online_estimate_converges_from_the_configured_values():
+    """The walls as drawn to 0.5 mm: only then can a 1.5 m arena give a depth scale to 0.1 % (with the
+    map's default 10 mm tolerance the scale is honestly left near its prior, docs/calibration.md)."""
     truth = truth_vector(**INJECTED)
-    f = run_online(truth)
+    f = run_online(truth, f=CalibrationFilter(ROBOT, plane_map=as_drawn(ARENA)))
     e = dict(zip(f.names, online_error(f, truth)))
     assert f.windows >= 10
     for cam in ("front", "left"):
@@ -564,8 +575,9 @@ def test_online_estimates_persist_and_a_restart_starts_from_them(tmp_path):
     assert why == ""
     g = CalibrationFilter(robot)
     assert g.load_json(data) == []
-    assert np.allclose(g.mean, f.mean) and np.allclose(g.cov, f.cov)
-    assert g.observed().tolist() == f.observed().tolist()
+    k = [f.names.index(n) for n in g.names]  # the walls' states are not saved: they belong to the map
+    assert np.allclose(g.mean, f.mean[k]) and np.allclose(g.cov, f.cov[np.ix_(k, k)])
+    assert g.observed().tolist() == f.observed()[k].tolist()
     # the left camera swapped for another unit: only it starts again from the config
     swapped = replace(robot, cameras=(robot.cameras[0], replace(robot.cameras[1], serial="333")))
     h = CalibrationFilter(swapped)
@@ -583,7 +595,7 @@ def test_a_scale_past_its_bound_is_warned_about_once(caplog):
     robot = replace(ROBOT, localizer=replace(ROBOT.localizer, depth_scale_std=0.002))  # bound 0.6 %
     truth = truth_vector(scale={"front": 0.01})
     with caplog.at_level(logging.WARNING, logger="robot.fusion.calibration_filter"):
-        f = run_online(truth, robot=robot)
+        f = run_online(truth, robot=robot, f=CalibrationFilter(robot, plane_map=as_drawn(ARENA)))  # walls as drawn
     warnings = [r for r in caplog.records if "depth scale" in r.getMessage()]
     assert len(warnings) == 1 and "camera front" in warnings[0].getMessage()
     assert "recalibrate" in warnings[0].getMessage()
@@ -707,3 +719,37 @@ def test_a_recorded_run_is_calibration_data_and_the_command_reads_it(tmp_path):
     p = subprocess.run([sys.executable, "-m", "robot.cli.main", "calibrate", "--from", str(tmp_path / "none.mcap")],
                        capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "none.mcap" in p.stderr
+
+
+def test_the_online_estimate_is_honest_on_a_rendered_run_with_walls_as_built():
+    """The paper's path, rendered with the realistic camera, walls built off the drawing (offsets,
+    bows, out of plumb), the bench's injected errors: the end estimate's NEES within the 99.9 % band
+    of chi-square. Treating each window's wall errors as new made it ~2800 over 13 states (the wall
+    offsets read as a depth scale known to 0.02 %). The mount pitch is left out: its information comes
+    from the walls' tilt in the image, where the camera's fixed disparity wave beyond second order
+    repeats in every view; that part is not modelled yet (docs/calibration.md)."""
+    from scipy.stats import chi2
+
+    from drivers.sim.render import DepthNoise
+    from drivers.sim.world import WorldSettings
+    from robot.control.path_file import load_path
+    from robot.sim.calibration_run import true_parameters
+    from robot.sim.runner import RunSettings, run_path
+
+    plan = load_path(DEFAULT_MAP.parents[1] / "paths" / "paper_4_3.yaml")
+    world = WorldSettings(seed=1, as_built=True, depth_noise=DepthNoise.realistic({"front": 0.01, "left": -0.01}),
+                          wheel_radius_error=0.01, mount_errors=(("front", (0.010, 0.0, 0.0, 0.0, 0.0, 0.5)),
+                                                                 ("left", (0.0, 0.0, 0.0, 0.0, 0.0, -0.5))))
+    settings = RunSettings(world=world, online_calibration=True)
+    run = run_path(ROBOT, ARENA, plan, settings)
+    cal = run.calibration
+    assert run.finished and cal is not None
+    truth = true_parameters(ROBOT, ARENA, (plan.start.x, plan.start.y, plan.start.heading), settings)
+    k = [j for j, n in enumerate(cal["names"]) if not n.startswith("plane:")]
+    names = [cal["names"][j] for j in k]
+    e = np.asarray(cal["mean"])[k] - truth[[LAYOUT.index(n) for n in names]]
+    C = np.asarray(cal["cov"])[np.ix_(k, k)]
+    ok = np.asarray(cal["observed"], bool)[k] & np.array([not n.endswith(".pitch") for n in names])
+    assert ok.sum() >= 5, names
+    nees = float(e[ok] @ np.linalg.solve(C[np.ix_(ok, ok)], e[ok]))
+    assert chi2.ppf(0.0005, ok.sum()) < nees < chi2.ppf(0.9995, ok.sum()), (nees, [n for n, o in zip(names, ok) if o])

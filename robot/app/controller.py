@@ -22,13 +22,14 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import logging
 import math
 import signal
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
@@ -148,7 +149,7 @@ class RobotApp:
         """The online calibration (``AppOptions.online_calibration``), started from its saved state."""
         if not (self.options.online_calibration and self.options.vision):
             return None
-        f = CalibrationFilter(self.robot)
+        f = CalibrationFilter(self.robot, plane_map=self.plane_map)  # the walls' as-built tolerances
         if self.calibration_store is not None:
             state, why = self.calibration_store.load()
             notes = [why] if state is None else f.load_json(state)
@@ -443,10 +444,14 @@ class RobotApp:
 
     async def _recovery_task(self) -> None:
         """Relocalize when the recovery supervisor asks (no pose, lost, kidnapped, a saved pose the
-        cameras contradict): on the first frame of every camera taken after the request, off the loop."""
+        cameras contradict): on the first frame of every camera taken after the request, off the loop.
+        After an in-place turn (recovery.turn_in_place) the earlier views of the sequence go with
+        it, each with its odometry pose; the answer is for where the robot stands now."""
+        from robot.control.recovery import views_from_latest
         from robot.localization.relocalize import Relocalizer
 
         relocalizer: Optional[Relocalizer] = None
+        views: List[Tuple[List[DepthFrame], Tuple[float, float, float]]] = []
         while True:
             await asyncio.sleep(RECOVERY_POLL)
             t_request = time.monotonic()
@@ -454,15 +459,21 @@ class RobotApp:
                 continue
             sd_notify.status(f"relocalizing: {self.core.recovery.reason}")
             log.warning("relocalizing: %s", self.core.recovery.reason)
+            if self.core.recovery.view_index == 0:
+                views = []
+            rel = self.core.recovery_view_pose()  # the robot stands still until the verdict
             frames = await self._frames_after(t_request)
+            views.append((frames, rel))
+            first, more = views_from_latest(views)
             if relocalizer is None:
                 relocalizer = await self._loop.run_in_executor(self._executor, Relocalizer, self.robot, self.plane_map,
                                                                self.localizer)
             try:
-                res = await self._loop.run_in_executor(self._executor, relocalizer.relocalize, frames)
+                res = await self._loop.run_in_executor(self._executor, functools.partial(
+                    relocalizer.relocalize, first, more_views=more))
             except Exception as e:  # a bad frame: report it and try again later, never move on it
                 log.error("relocalization failed: %s", e)
-                self.core.recovery.on_verdict(time.monotonic(), "none", [], str(e))
+                self.core.recovery.on_verdict(time.monotonic(), "none", [], str(e), may_turn=False)
                 continue
             t_frames = max(f.t_capture for f in frames)
             if res.verdict == "unique":
@@ -470,9 +481,10 @@ class RobotApp:
                 self.core.set_pose(t_frames, h.x, h.y, h.phi, np.asarray(h.cov, float))
                 self._record("status", t_frames, channels.set_pose_message(t_frames, h.x, h.y, h.phi,
                                                                            np.asarray(h.cov, float), "relocalization"))
-                log.info("relocalized at (%.3f, %.3f, %.1f deg); confirming", h.x, h.y, math.degrees(h.phi))
+                log.info("relocalized at (%.3f, %.3f, %.1f deg) from %d view(s); confirming", h.x, h.y,
+                         math.degrees(h.phi), len(views))
             else:
-                log.warning("relocalization %s: %s", res.verdict, res.reason)
+                log.warning("relocalization %s from %d view(s): %s", res.verdict, len(views), res.reason)
             self.core.recovery.on_verdict(time.monotonic(), res.verdict, [h.to_json() for h in res.hypotheses[:8]],
                                           res.reason)
 

@@ -43,6 +43,12 @@ CAMERA_PARAMS = ("depth_scale", "x", "y", "z", "roll", "pitch", "yaw")
 # systematic disparity error as its prior, and never written: a nuisance.
 DISPARITY_PARAMS = ("disparity_0", "disparity_u", "disparity_v", "disparity_uv", "disparity_uu", "disparity_vv")
 CAMERA_BLOCK = CAMERA_PARAMS + DISPARITY_PARAMS
+# A map wall as built (docs/calibration.md, "Walls as built"): its offset along its normal (m, the
+# change of the plane's d), a turn about the vertical and an out-of-plumb tilt about the wall's
+# horizontal line (rad), both through the wall's pivot point. Every view of a wall shares them, so
+# the online estimator keeps them as states from window to window; never written: nuisances.
+WALL_PARAMS = ("offset", "turn", "plumb")
+WALL_PREFIX = "plane:"
 ODOMETRY_PARAMS = ("wheel_radius", "wheel_diff_crab", "wheel_diff_turn", "wheel_diff_axle", "lx_plus_ly")
 # r_i = r + H[i] . (crab, turn, axle): FL, FR, RL, RR. Orthogonal columns, each summing to zero,
 # so r stays the mean radius.
@@ -152,6 +158,8 @@ class Dataset:
     # adds to the covariance (the solver's "consider" terms).
     intrinsics: Dict[str, Tuple[float, float, float, float]] = field(default_factory=dict)
     systematic_px: float = 0.0
+    # (3,) pivot in G of each wall whose as-built deviation is a parameter (``ParamLayout.walls``)
+    walls: Dict[str, np.ndarray] = field(default_factory=dict)
 
     def observation_count(self) -> int:
         return sum(len(k.observations) for k in self.keyframes)
@@ -160,10 +168,12 @@ class Dataset:
 class ParamLayout:
     """Names and order of the calibration parameters for a robot's cameras."""
 
-    def __init__(self, cameras: Sequence[str]):
+    def __init__(self, cameras: Sequence[str], walls: Sequence[str] = ()):
         self.cameras = tuple(cameras)
+        self.walls = tuple(walls)  # plane ids whose as-built deviation (WALL_PARAMS) is a parameter
         self.names: List[str] = [f"{c}.{p}" for c in self.cameras for p in CAMERA_BLOCK]
         self.names += [f"odometry.{p}" for p in ODOMETRY_PARAMS]
+        self.names += [f"{WALL_PREFIX}{w}.{p}" for w in self.walls for p in WALL_PARAMS]
         self._index = {n: i for i, n in enumerate(self.names)}
 
     def __len__(self) -> int:
@@ -176,10 +186,14 @@ class ParamLayout:
         i = self.cameras.index(camera) * len(CAMERA_BLOCK)
         return slice(i, i + len(CAMERA_BLOCK))
 
+    def wall_slice(self, wall: str) -> slice:
+        i = self.odometry_slice.stop + self.walls.index(wall) * len(WALL_PARAMS)
+        return slice(i, i + len(WALL_PARAMS))
+
     @property
     def nuisance(self) -> List[int]:
-        """The disparity error terms: estimated, never reported as calibration or written."""
-        return [i for i, n in enumerate(self.names) if n.rsplit(".", 1)[1] in DISPARITY_PARAMS]
+        """The disparity error terms and the walls as built: estimated, never reported as calibration or written."""
+        return [i for i, n in enumerate(self.names) if is_nuisance(n)]
 
     @property
     def odometry_slice(self) -> slice:
@@ -197,6 +211,15 @@ class ParamLayout:
         ch = robot.chassis
         theta[self.odometry_slice] = [ch.wheel_radius, 0.0, 0.0, 0.0, ch.half_wheelbase + ch.half_track]
         return theta
+
+
+def is_wall_param(name: str) -> bool:
+    return name.startswith(WALL_PREFIX)
+
+
+def is_nuisance(name: str) -> bool:
+    """A parameter estimated only so the others are not biased: never reported or written."""
+    return is_wall_param(name) or name.rsplit(".", 1)[1] in DISPARITY_PARAMS
 
 
 def camera_rotation(rpy: Sequence[float]) -> np.ndarray:
@@ -263,6 +286,8 @@ class PlaneArrays:
     # (N, 3, 6): d residual / d (DISPARITY_PARAMS) of the camera's disparity error, seen by each
     # wall as its local offset and slopes where its points are
     consider: np.ndarray
+    wall: Optional[np.ndarray] = None  # (N,) index into ``ParamLayout.walls`` of the observed wall, -1: none
+    pivot: Optional[np.ndarray] = None  # (N, 3) that wall's pivot in G
 
     @classmethod
     def build(cls, data: Dataset, layout: ParamLayout) -> PlaneArrays:
@@ -304,26 +329,51 @@ class PlaneArrays:
             dq = np.einsum("ij,njk->nik", A, T[m])  # (n, 3, terms)
             consider[m, 0, :] = np.einsum("ni,nik->nk", d[m, None] ** 2 * n_C[m], dq)
             consider[m, 1:, :] = d[m, None, None] * np.einsum("nai,nik->nak", basis[m], dq)
+        wall = np.array([layout.walls.index(o.plane_id) if o.plane_id in layout.walls else -1 for o in obs], int)
+        pivot = np.array([np.asarray(data.walls.get(o.plane_id, np.zeros(3)), float) for o in obs]).reshape(n, 3)
         return cls(keyframe, camera, np.array([o.n_ground for o in obs], float).reshape(n, 3),
                    np.array([o.d_ground for o in obs], float), d, np.array([o.applied_scale for o in obs], float),
-                   basis, sigma, consider)
+                   basis, sigma, consider, wall, pivot)
 
 
-def plane_residuals(planes: PlaneArrays, poses: np.ndarray, cams: np.ndarray,
-                    jacobian: bool = False) -> Tuple[np.ndarray, Optional[Tuple[np.ndarray, np.ndarray]]]:
+def wall_directions(n_ground: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """(N, 3) each: how a wall's normal moves by its turn about the vertical (up x n) and by its out
+    of plumb tilt (-up: the top leans towards the side the normal faces)."""
+    a = np.cross(np.array([0.0, 0.0, 1.0]), n_ground)
+    b = np.zeros_like(n_ground)
+    b[:, 2] = -1.0
+    return a, b
+
+
+def plane_residuals(planes: PlaneArrays, poses: np.ndarray, cams: np.ndarray, jacobian: bool = False,
+                    walls: Optional[np.ndarray] = None) -> Tuple[np.ndarray, Optional[Tuple[np.ndarray, ...]]]:
     """Residuals (N, 3) = (r_d, r_heading, r_tilt), unwhitened, and with ``jacobian`` their
-    derivatives: (N, 3, 3) by the keyframe pose (x, y, phi) and (N, 3, 13) by the camera's own
-    parameters (S, x, y, z, roll, pitch, yaw, then the disparity terms). ``cams``: (C, 13)."""
+    derivatives: (N, 3, 3) by the keyframe pose (x, y, phi), (N, 3, 13) by the camera's own
+    parameters (S, x, y, z, roll, pitch, yaw, then the disparity terms) and (N, 3, 3) by the
+    observed wall's as-built deviation (WALL_PARAMS; zero for a wall without). ``cams``: (C, 13);
+    ``walls``: (W, 3), one row per ``ParamLayout.walls``."""
     k, c = planes.keyframe, planes.camera
     phi = poses[k, 2]
     co, si = np.cos(phi), np.sin(phi)
     nG = planes.n_ground
+    dG = planes.d_ground
+    has_wall = planes.wall is not None and walls is not None and len(walls) > 0 and bool(np.any(planes.wall >= 0))
+    if has_wall:
+        # the wall as built: turned and tilted about its pivot, then moved along its normal
+        wi = np.maximum(planes.wall, 0)
+        on = (planes.wall >= 0)[:, None]
+        w = np.where(on, walls[wi], 0.0)
+        a_dir, b_dir = wall_directions(nG)
+        n_built = nG + w[:, 1:2] * a_dir + w[:, 2:3] * b_dir
+        n_built /= np.linalg.norm(n_built, axis=1)[:, None]
+        dG = dG + w[:, 0] - np.einsum("oi,oi->o", n_built - nG, planes.pivot)
+        nG = n_built
     n_R = np.stack([nG[:, 0] * co + nG[:, 1] * si, -nG[:, 0] * si + nG[:, 1] * co, nG[:, 2]], axis=1)
     R = np.stack([camera_rotation(p[4:7]) for p in cams])  # (C, 3, 3)
     t = cams[:, 1:4]
     n_C = np.einsum("oji,oj->oi", R[c], n_R)
     S = cams[c, 0]
-    d_pred = nG[:, 0] * poses[k, 0] + nG[:, 1] * poses[k, 1] + np.einsum("oi,oi->o", n_R, t[c]) + planes.d_ground
+    d_pred = nG[:, 0] * poses[k, 0] + nG[:, 1] * poses[k, 1] + np.einsum("oi,oi->o", n_R, t[c]) + dG
     res = np.zeros((len(k), 3))
     # measured = scale x model, not model / scale = measured: the noisy measurement must not be a
     # lever of the scale (errors in variables would give the scale information it does not have)
@@ -353,7 +403,24 @@ def plane_residuals(planes: PlaneArrays, poses: np.ndarray, cams: np.ndarray,
             dR.append((camera_rotation(up) - camera_rotation(dn)) / (2 * h))
         dR = np.stack(dR)
         Jc[:, 1:, 4 + j] = np.einsum("oai,oji,oj->oa", planes.basis, dR[c], n_R)
-    return res, (Jp, Jc)
+    Jw = np.zeros((len(k), 3, len(WALL_PARAMS)))
+    if has_wall:
+        # through the map plane: d r_d / d d_G = -gain; d r_d / d n_G = -gain (p + Rz(phi) t) (p the
+        # robot's position at z = 0); d r_angles / d n_G = B R^T Rz(-phi)
+        zero, one = np.zeros(len(k)), np.ones(len(k))
+        Rzm = np.stack([np.stack([co, si, zero], 1), np.stack([-si, co, zero], 1), np.stack([zero, zero, one], 1)], 1)
+        t_G = np.einsum("oji,oj->oi", Rzm, t[c])  # Rz(phi) t
+        p = np.stack([poses[k, 0], poses[k, 1], zero], axis=1)
+        dn = np.zeros((len(k), 3, 3))
+        dn[:, 0, :] = -gain[:, None] * (p + t_G)
+        dn[:, 1:, :] = np.einsum("oai,oji,ojk->oak", planes.basis, R[c], Rzm)
+        dd = np.zeros((len(k), 3))
+        dd[:, 0] = -gain
+        Jw[:, :, 0] = dd
+        Jw[:, :, 1] = np.einsum("ork,ok->or", dn, a_dir) - dd * np.einsum("oi,oi->o", a_dir, planes.pivot)[:, None]
+        Jw[:, :, 2] = np.einsum("ork,ok->or", dn, b_dir) - dd * np.einsum("oi,oi->o", b_dir, planes.pivot)[:, None]
+        Jw[planes.wall < 0] = 0.0
+    return res, (Jp, Jc, Jw)
 
 
 @dataclass

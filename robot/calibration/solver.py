@@ -28,6 +28,7 @@ from robot.calibration.model import (
     CAMERA_PARAMS,
     DISPARITY_PARAMS,
     ODOMETRY_PARAMS,
+    WALL_PARAMS,
     Dataset,
     OdometryArrays,
     ParamLayout,
@@ -55,6 +56,8 @@ def default_prior_std(nominal: np.ndarray, layout: ParamLayout, systematic_px: f
         out[layout.camera_slice(c)] = [per_cam[p] for p in CAMERA_PARAMS] + terms
     r0, L0 = nominal[layout.odometry_slice][[0, 4]]
     out[layout.odometry_slice] = [0.1 * r0, 0.05 * r0, 0.05 * r0, 0.05 * r0, 0.2 * L0]
+    for w in layout.walls:  # the map's default as-built tolerance (robot.maps.plane_map)
+        out[layout.wall_slice(w)] = [0.01, 0.01, 0.01]
     return out
 
 
@@ -67,6 +70,8 @@ def default_bounds(nominal: np.ndarray, layout: ParamLayout) -> np.ndarray:
         out[layout.camera_slice(c)] = [per_cam[p] for p in CAMERA_PARAMS] + [math.inf] * len(DISPARITY_PARAMS)
     r0, L0 = nominal[layout.odometry_slice][[0, 4]]
     out[layout.odometry_slice] = [1e-3 * r0, 2e-3 * r0, 2e-3 * r0, 2e-3 * r0, 5e-3 * L0]
+    for w in layout.walls:
+        out[layout.wall_slice(w)] = math.inf
     return out
 
 
@@ -212,7 +217,8 @@ class _Problem:
     def evaluate(self, poses: np.ndarray, theta: np.ndarray, jacobian: bool):
         lay = self.layout
         cams = np.stack([theta[lay.camera_slice(c)] for c in lay.cameras])
-        rp, Jpl = plane_residuals(self.planes, poses, cams, jacobian)
+        walls = theta[lay.odometry_slice.stop:].reshape(-1, len(WALL_PARAMS)) if lay.walls else None
+        rp, Jpl = plane_residuals(self.planes, poses, cams, jacobian, walls)
         rp = rp / self._plane_sigma()
         ro, Jod = odometry_residuals(self.odo, poses, theta[lay.odometry_slice], jacobian)
         ro = ro / self._odo_sigma() if len(ro) else ro
@@ -246,12 +252,13 @@ class _Problem:
         lay = self.layout
         K, F = self.K, len(free)
         col = {p: i for i, p in enumerate(free)}
-        rp, (Jp, Jc), ro, Jod = self.evaluate(poses, theta, True)
+        rp, (Jp, Jc, Jw), ro, Jod = self.evaluate(poses, theta, True)
         sig_p = self._plane_sigma()
         Jp = Jp / sig_p[:, :, None]
         Jc = Jc / sig_p[:, :, None]
+        Jw = Jw / sig_p[:, :, None]
         w = np.sqrt(self.huber(rp))
-        rp, Jp, Jc = rp * w, Jp * w[:, :, None], Jc * w[:, :, None]
+        rp, Jp, Jc, Jw = rp * w, Jp * w[:, :, None], Jc * w[:, :, None], Jw * w[:, :, None]
         # the camera parameter block of each row, mapped to the free columns
         Jt = np.zeros((len(rp), 3, F))
         for ci, c in enumerate(lay.cameras):
@@ -260,6 +267,12 @@ class _Problem:
             for j in range(len(CAMERA_BLOCK)):
                 if base + j in col:
                     Jt[m, :, col[base + j]] = Jc[m, :, j]
+        for wi, wall in enumerate(lay.walls):  # the walls as built
+            base = lay.wall_slice(wall).start
+            m = self.planes.wall == wi
+            for j in range(len(WALL_PARAMS)):
+                if base + j in col:
+                    Jt[m, :, col[base + j]] = Jw[m, :, j]
         kf = self.planes.keyframe
         D = np.zeros((K, 3, 3))
         np.add.at(D, kf, np.einsum("nri,nrj->nij", Jp, Jp))

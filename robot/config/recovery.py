@@ -21,6 +21,13 @@ class RecoveryConfig:
     confirm_updates: int = integer(3, 1, 100, "", "accepted plane updates after a relocalization before moving")
     retry_period: float = number(2.0, 0.1, 120.0, "s", "between attempts while ambiguous or without an answer")
     auto_resume: bool = flag(True, "resume the mission after confirmation (false: wait for a resume command)")
+    turn_in_place: bool = flag(False, "when a relocalization is ambiguous or finds nothing, turn slowly in place "
+                               "to view more headings and relocalize again with all views")
+    turn_rate: float = number(0.3, 0.05, 1.0, "rad/s", "turn rate of the in-place turn (also capped at "
+                              "control.max_yaw_rate)")
+    turn_step_deg: float = number(45.0, 10.0, 180.0, "deg", "heading turned between two views")
+    max_turn_deg: float = number(360.0, 10.0, 360.0, "deg", "largest heading turned in one relocalization "
+                                 "(views at multiples of turn_step_deg up to this, a view at 360 deg repeats the first)")
 
     def __post_init__(self):
         check_fields(self, "recovery")

@@ -34,7 +34,7 @@ from robot.control.odometry import OdometryFeed
 from robot.control.path_file import PathPlan
 from robot.control.protective_stop import CLEAR, DISABLED, ProtectiveStop, SafetyDecision
 from robot.control.recovery import RecoverySupervisor
-from robot.control.trajectory import AxisLimiter, Command, TrajectoryController
+from robot.control.trajectory import AxisLimiter, Command, TrajectoryController, _profile
 from robot.fusion.calibration_filter import CalibrationFilter
 from robot.fusion.ekf import PoseFilter
 from robot.fusion.quality import LOCALIZED, LOST, FusedProtection, QualityMonitor, QualityReport
@@ -46,6 +46,9 @@ STILL_TURN = 0.01  # rad/s
 IDLE = "idle"
 PATH = "path"
 TELEOP = "teleop"
+TURN = "recovery_turn"  # Command.state of the relocalization's in-place turn
+TURN_DONE_TOL = math.radians(2.0)  # rad short of the next view's heading that counts as there (odometry gives the exact angle)
+TURN_KP = 2.0  # 1/s: the turn's approach to its heading, below the braking curve
 
 
 class CommandRefused(RobotError):
@@ -116,6 +119,14 @@ class ControllerCore:
         self._last_fix = -math.inf  # capture time of the newest accepted camera fix
         self._odom_speed = 0.0  # m/s and rad/s of the newest wheel odometry
         self._odom_turn = 0.0
+        # The in-place turn of a relocalization: the odometry pose since the sequence's first view
+        # (view 0's robot frame), its unwrapped heading, and the turn's own rate limiter.
+        self._turn_rel: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._turn_yaw = 0.0
+        c = robot.control
+        self._turn_lim = AxisLimiter(min(robot.recovery.turn_rate, c.max_yaw_rate), c.max_yaw_accel, c.max_yaw_jerk)
+        self._turn_t: Optional[float] = None
+        self._t_odom_seen = -math.inf  # newest wheel odometry, pose or not (the turn needs it fresh)
         self.vision = vision
         self.kinematics = MecanumKinematics.from_config(robot.chassis)
         self.filter = PoseFilter(robot.fusion)
@@ -172,6 +183,8 @@ class ControllerCore:
     def on_odometry(self, odo: WheelOdometry, quantisation_variance: float = 0.0) -> bool:
         if self.calibration is not None:
             self.calibration.add_odometry(odo)
+        if self.vision and (self.recovery.in_sequence or not self.filter.initialized):
+            self._turn_odometry(odo)
         if not self.filter.initialized:
             return False
         # A sample spans its own interval; a gap before it (the encoders restarted) gets an input
@@ -191,6 +204,31 @@ class ControllerCore:
         else:
             self.counters["odometry_rejected"] += 1
         return res.accepted
+
+    def _turn_odometry(self, odo: WheelOdometry) -> None:
+        """Wheel odometry without the filter: the relative pose between the views of a relocalization
+        (the filter's pose is missing or wrong then), and whether the robot stands still."""
+        dt = float(odo.dt)
+        self._t_odom_seen = max(self._t_odom_seen, float(odo.t))
+        if not (math.isfinite(dt) and 0.0 < dt <= 1.0):
+            return
+        vx, vy, wz = (float(v) for v in self.kinematics.forward(odo.speeds))
+        if not (math.isfinite(vx) and math.isfinite(vy) and math.isfinite(wz)):
+            return
+        if not self.filter.initialized:  # else on_odometry sets them from the filter's inputs
+            self._odom_speed, self._odom_turn = math.hypot(vx, vy), wz
+        if self.recovery.in_sequence:
+            # The body twist over the sample, integrated along its arc (midpoint heading).
+            x, y, phi = self._turn_rel
+            h = phi + 0.5 * wz * dt
+            c, sn = math.cos(h), math.sin(h)
+            phi = math.atan2(math.sin(phi + wz * dt), math.cos(phi + wz * dt))
+            self._turn_rel = (x + (c * vx - sn * vy) * dt, y + (sn * vx + c * vy) * dt, phi)
+            self._turn_yaw += wz * dt
+
+    def recovery_view_pose(self) -> Tuple[float, float, float]:
+        """The robot's pose now in the robot frame of the first view of this relocalization (odometry)."""
+        return self._turn_rel
 
     def on_gyro(self, t: float, wz_robot: float, variance: float) -> bool:
         if not self.filter.initialized:
@@ -233,7 +271,11 @@ class ControllerCore:
         robot has braked to a standstill (frames of a moving robot would describe a blur of poses)."""
         if abs(self._odom_speed) > STILL_SPEED or abs(self._odom_turn) > STILL_TURN:
             return False
-        return self.recovery.wants_relocalization(t)
+        if not self.recovery.wants_relocalization(t):
+            return False
+        if self.recovery.view_index == 0:  # a new sequence: its first view is the origin
+            self._turn_rel, self._turn_yaw = (0.0, 0.0, 0.0), 0.0
+        return True
 
     def _note_recovery(self, result: LocalizationResult, t_capture: float, accepted: int) -> None:
         """Tell the recovery supervisor how this view agreed with the pose. Predicted walls with a
@@ -409,7 +451,8 @@ class ControllerCore:
         if self.health.note_tick(t, 1.0 / self.robot.control.rate) is not None:
             self._restart_from_rest()  # a stall or a link change: the board has stopped the wheels
         if not self.filter.initialized:
-            return self._silent(t, "no pose yet")
+            turn = self._recovery_turn(t, None) if self.vision else None
+            return turn if turn is not None else self._silent(t, "no pose yet")
         quality = self.evaluate_quality(t)
         scale, reason = self.speed_scale(t, quality)
         if self.vision:  # without vision there is nothing to relocalize with (odometry-only runs)
@@ -435,6 +478,9 @@ class ControllerCore:
             cmd = Command(vx, vy, wz, t, TELEOP, 0)
         else:
             cmd = Command(0.0, 0.0, 0.0, t, IDLE, 0)
+        turn = self._recovery_turn(t, (x, y, phi)) if self.vision else None
+        if turn is not None:  # the path or teleop is held (scale 0); the turn's command replaces theirs
+            return turn
         cmd, reason = self._protective_stop(t, cmd, (x, y, phi), reason)
         if not self.health.chassis_ok:
             return self._silent(t, self._chassis_reason or "chassis link down", cmd)
@@ -445,6 +491,63 @@ class ControllerCore:
         if not np.isfinite(wheels).all():
             return self._silent(t, "non-finite wheel command refused", cmd)
         return ControlOutput(t, cmd, tuple(float(w) for w in wheels), scale, reason)  # type: ignore[arg-type]
+
+    def _turn_blocker(self, t: float) -> str:
+        """Why the in-place turn may not go on now ("" when it may)."""
+        if self.health.holding:
+            return f"fault: {self.health.fault}"
+        if not self.health.chassis_ok:
+            return self._chassis_reason or "chassis link down"
+        if t - self._t_odom_seen > self.health.config.max_command_age:
+            return f"no wheel odometry for {t - self._t_odom_seen:.2f} s"
+        if self.mode == TELEOP:
+            return "the robot is teleoperated: it does not turn by itself"
+        return ""
+
+    def _recovery_turn(self, t: float, pose: Optional[Tuple[float, float, float]]) -> Optional[ControlOutput]:
+        """The relocalization's in-place turn while the supervisor asks for it, and its braking to
+        still after it; None when neither (the normal command stands).
+
+        A pure rotation (vx = vy = 0) towards the next view's heading by wheel odometry, through the
+        robot's yaw limits and the protective stop. Anything that stops it (an obstacle inside the
+        turning circle, no fresh depth, a fault, the link, stale odometry) ends the turn for good:
+        the supervisor keeps the last verdict."""
+        rec = self.recovery
+        lim = self._turn_lim
+        if not rec.turning and lim.v == 0.0 and lim.a == 0.0:
+            self._turn_t = None
+            return None
+        c = self.robot.control
+        dt = 1.0 / c.rate if self._turn_t is None else min(max(t - self._turn_t, 0.0), c.max_dt)
+        self._turn_t = t
+        if rec.turning:
+            why = self._turn_blocker(t)
+            if why:
+                rec.turn_stopped(t, why)
+                if self.health.holding or not self.health.chassis_ok:
+                    lim.reset()  # the board has stopped the wheels: nothing to brake
+        remaining = rec.turn_goal - self._turn_yaw
+        if rec.turning:
+            target = _profile(remaining, lim.max_speed, 0.5 * c.max_yaw_accel, TURN_KP)
+        else:
+            target = 0.0
+        wz = lim.step(target, dt)
+        cmd = Command(0.0, 0.0, wz, t, TURN, 0)
+        limited, reason = self._protective_stop(t, cmd, pose, "")
+        if limited.wz != wz or limited.vx != 0.0 or limited.vy != 0.0:
+            if rec.turning:
+                rec.turn_stopped(t, reason or "the protective stop")
+            lim.reset()  # the stop cut the rotation at once: the limiter starts from rest again
+            cmd = replace(limited, vx=0.0, vy=0.0)
+        elif rec.turning and abs(remaining) <= TURN_DONE_TOL:
+            rec.turn_done(t)  # brakes from here (the target drops to zero); relocalizes once still
+        reason = f"{rec.state}: {rec.reason}" + (f"; {reason}" if reason else "")
+        if not self.health.chassis_ok:
+            return self._silent(t, self._chassis_reason or "chassis link down", cmd)
+        wheels, _ = self.kinematics.limit(self.kinematics.inverse(0.0, 0.0, cmd.wz), self.robot.chassis.max_wheel_speed)
+        if not np.isfinite(wheels).all():
+            return self._silent(t, "non-finite wheel command refused", cmd)
+        return ControlOutput(t, cmd, tuple(float(w) for w in wheels), 0.0, reason)  # type: ignore[arg-type]
 
     def _protective_stop(self, t: float, cmd: Command, pose, reason: str) -> Tuple[Command, str]:
         """The command limited by the obstacle picture (stop, slow-down and blind zones)."""

@@ -310,7 +310,8 @@ class ProtectiveStop:
         c = self.config
         if pose is None:  # no pose to carry the memory with: the fresh scans as they were taken
             fresh = [s.points_xy for s in list(self.scans.values()) if abs(t - s.t) <= c.max_scan_age]
-            return np.vstack(fresh) if fresh else np.zeros((0, 2))
+            pts = np.vstack(fresh) if fresh else np.zeros((0, 2))
+            return self._with_blind_arcs(t, pts)
         mem_xy, mem_t = self.memory
         recent = (t - mem_t) <= c.memory_time
         # The memory is kept oldest first, so the recent points are usually a suffix: slice it (a
@@ -322,6 +323,12 @@ class ProtectiveStop:
             mem_xy = mem_xy[recent]
         T = pose_to_T_ground_robot(*pose)
         pts = (mem_xy - T[:2, 3]) @ T[:2, :2]
+        return self._with_blind_arcs(t, pts)
+
+    def _with_blind_arcs(self, t: float, pts: np.ndarray) -> np.ndarray:
+        """``pts`` and, for every fresh view blinded close up, an arc of points just in front of its
+        lens (with or without a pose: the relocalization's in-place turn has none)."""
+        c = self.config
         blind = [self._views[s.camera] for s in list(self.scans.values())
                  if s.near_blind and abs(t - s.t) <= c.max_scan_age and s.camera in self._views]
         for view in blind:  # something may be right in front of the lens, nearer than it can measure

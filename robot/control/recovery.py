@@ -12,6 +12,15 @@ States:
 - ``relocalizing``: waiting for a verdict on fresh frames; the robot holds still.
 - ``ambiguous``: several poses explain the views; the robot holds, the hypotheses are reported,
   and relocalization is retried every ``retry_period`` (new views, or a person, decide).
+- ``turning`` (only with ``turn_in_place``): the last relocalization was ambiguous or found
+  nothing; the core turns the robot in place by ``turn_step_deg`` (a pure rotation, braked to
+  still), then the next relocalization uses every view of this sequence: the first view's frames
+  and, for each later one, its frames with its pose relative to the first by odometry. The
+  sequence ends on ``unique`` (confirming as usual), or when the next view would pass
+  ``max_turn_deg`` (or repeat the first heading), or when the turn was stopped (the protective
+  stop, a fault): then the verdict stands and is reported as without a turn. A sequence that ended
+  so is not turned again until a new trigger (or an operator's request): a robot that has looked
+  all round, or was stopped by something beside it, does not start moving on its own.
 - ``confirming``: a unique verdict set the pose; the robot holds until the normal localizer has
   accepted ``confirm_updates`` plane updates from it.
 
@@ -25,15 +34,46 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import List, Optional, Sequence, Tuple, TypeVar
 
 from robot.config.recovery import RecoveryConfig
+
+T = TypeVar("T")
 
 TRACKING = "tracking"
 CHECKING = "checking"
 RELOCALIZING = "relocalizing"
 AMBIGUOUS = "ambiguous"
 CONFIRMING = "confirming"
+TURNING = "turning"
+
+FULL_TURN = 2.0 * math.pi
+_TURN_EPS = 1e-6  # rad: a view exactly at max_turn_deg is still taken
+
+
+Pose = Tuple[float, float, float]
+
+
+def _compose(a: Pose, b: Pose) -> Pose:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    phi = a[2] + b[2]
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], math.atan2(math.sin(phi), math.cos(phi)))
+
+
+def _inverse(a: Pose) -> Pose:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (-(c * a[0] + s * a[1]), s * a[0] - c * a[1], -a[2])
+
+
+def views_from_latest(views: Sequence[Tuple[T, Pose]]) -> Tuple[T, List[Tuple[T, Pose]]]:
+    """The views of a sequence, each given with its odometry pose in the first view's robot frame,
+    re-based on the latest: (its frames, [(frames, pose relative to it)] for the earlier ones).
+
+    The relocalizer answers for its first view and refines on it first, so giving it the latest
+    puts the hypotheses where the robot stands now, with the normal localizer's covariance there."""
+    frames, here = views[-1]
+    back = _inverse(here)
+    return frames, [(f, _compose(back, rel)) for f, rel in views[:-1]]
 
 
 @dataclass
@@ -49,6 +89,14 @@ class RecoverySupervisor:
     _confirmed: int = 0
     _next_try: float = -math.inf
     _requested: bool = False
+    # The views of the present relocalization sequence (an in-place turn gathers several).
+    view_index: int = 0  # of the view the shell is asked for: 0 starts a new sequence (drop the others)
+    turn_goal: float = 0.0  # rad, heading of the next view relative to the first (turning: where to stop)
+    _views: int = 0  # views taken in this sequence
+    _sequence_open: bool = False
+    _may_turn: bool = True  # False once a sequence has turned as far as it may, or its turn was stopped
+    _after_turn: Tuple[str, str] = (RELOCALIZING, "")  # (state, reason) the verdict left, if the turn stops
+    turn_note: str = ""  # how the last turn of this trigger ended, repeated in the retries' reasons
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -99,20 +147,71 @@ class RecoverySupervisor:
         elif accepted:
             self._rejected_run = []
 
-    def on_verdict(self, t: float, verdict: str, hypotheses: List[dict], reason: str = "") -> None:
-        """The relocalizer's answer; on 'unique' the shell has set the pose from the first hypothesis."""
+    def on_verdict(self, t: float, verdict: str, hypotheses: List[dict], reason: str = "",
+                   may_turn: bool = True) -> None:
+        """The relocalizer's answer; on 'unique' the shell has set the pose from the first hypothesis.
+
+        ``may_turn``: False when the attempt failed for a reason a turn cannot help (a bad frame)."""
         self._requested = False
         self.hypotheses = list(hypotheses)
+        self._views += 1
         if verdict == "unique":
             self.state, self.reason, self._confirmed, self._checked = CONFIRMING, "confirming the relocalized pose", 0, 0
-        elif verdict == "ambiguous":
-            self.state = AMBIGUOUS
-            self.reason = f"ambiguous: {len(hypotheses)} poses explain the views" + (f" ({reason})" if reason else "")
-            self._next_try = t + self.config.retry_period
+            self._sequence_open = False
+            return
+        turned = self.turn_goal
+        after = f" after turning {math.degrees(turned):.0f} deg in place" if turned > 0.0 else ""
+        if verdict == "ambiguous":
+            state = AMBIGUOUS
+            why = (f"ambiguous: {len(hypotheses)} poses explain the views" + after
+                   + (f" ({reason})" if reason else ""))
         else:
-            self.state = RELOCALIZING
-            self.reason = "relocalization found no pose" + (f": {reason}" if reason else "")
-            self._next_try = t + self.config.retry_period
+            state = RELOCALIZING
+            why = "relocalization found no pose" + after + (f": {reason}" if reason else "")
+        goal = self._views * math.radians(self.config.turn_step_deg)
+        if (self.config.turn_in_place and may_turn and self._may_turn and self._sequence_open
+                and goal <= math.radians(self.config.max_turn_deg) + _TURN_EPS and goal < FULL_TURN - _TURN_EPS):
+            self._after_turn = (state, why)
+            self.state, self.turn_goal = TURNING, goal
+            self.reason = f"turning in place to {math.degrees(goal):.0f} deg for another view ({why})"
+            return
+        if self._sequence_open and self._views > 1:
+            self._may_turn = False  # it has looked as far round as it may: no new turn on the retries
+            self.turn_note = f"no new turn: it turned {math.degrees(turned):.0f} deg in place already"
+        elif self.turn_note and self.config.turn_in_place:
+            why = f"{why}; {self.turn_note}"
+        self._sequence_open = False
+        self.state, self.reason = state, why
+        self._next_try = t + self.config.retry_period
+
+    def turn_done(self, t: float) -> None:
+        """The core has turned to ``turn_goal`` and braked: relocalize with one more view."""
+        if self.state != TURNING:
+            return
+        self.state = RELOCALIZING
+        self.reason = f"relocalizing with view {self._views + 1} at {math.degrees(self.turn_goal):.0f} deg"
+        self._next_try = t
+        self._requested = False
+
+    def turn_stopped(self, t: float, why: str) -> None:
+        """The turn could not go on (the protective stop, a fault): the last verdict stands."""
+        if self.state != TURNING:
+            return
+        state, reason = self._after_turn
+        self.turn_note = f"the in-place turn was stopped: {why}"
+        self.state, self.reason = state, f"{reason}; {self.turn_note}"
+        self._sequence_open = False
+        self._may_turn = False
+        self._next_try = t + self.config.retry_period
+
+    @property
+    def turning(self) -> bool:
+        return self.state == TURNING
+
+    @property
+    def in_sequence(self) -> bool:
+        """A relocalization sequence is gathering views: the shell keeps the odometry since its first."""
+        return self._sequence_open
 
     def force(self, t: float, why: str) -> None:
         """An operator or the fleet asks for a relocalization now."""
@@ -122,6 +221,7 @@ class RecoverySupervisor:
         """A person set the pose: check it like a saved one."""
         self.hypotheses = []
         self._requested = False
+        self._sequence_open, self._may_turn, self.turn_goal, self.turn_note = False, True, 0.0, ""
         self.start_from_saved_pose(t)
 
     # -- outputs -----------------------------------------------------------------------------
@@ -134,7 +234,7 @@ class RecoverySupervisor:
     @property
     def holding(self) -> bool:
         """The robot must not move (it does not know where it is, or has not confirmed it)."""
-        return self.state in (RELOCALIZING, AMBIGUOUS, CONFIRMING)
+        return self.state in (RELOCALIZING, AMBIGUOUS, CONFIRMING, TURNING)
 
     def wants_relocalization(self, t: float) -> bool:
         """True once per attempt: the shell should relocalize on the next frames."""
@@ -142,6 +242,9 @@ class RecoverySupervisor:
             return False
         self._requested = True
         self.attempts += 1
+        if not self._sequence_open:
+            self._sequence_open, self._views, self.turn_goal = True, 0, 0.0
+        self.view_index = self._views
         return True
 
     def _enter(self, state: str, t: float, why: str) -> None:
@@ -151,6 +254,9 @@ class RecoverySupervisor:
         self._rejected_run = []
         self._next_try = t
         self._requested = False
+        self._sequence_open, self._may_turn, self.turn_goal, self.turn_note = False, True, 0.0, ""
 
     def to_json(self) -> dict:
-        return {"state": self.state, "reason": self.reason, "attempts": self.attempts, "hypotheses": self.hypotheses}
+        return {"state": self.state, "reason": self.reason, "attempts": self.attempts, "hypotheses": self.hypotheses,
+                "views": self._views if self._sequence_open or self.state == TURNING else 0,
+                "turn_goal_deg": math.degrees(self.turn_goal) if self.state == TURNING else None}

@@ -43,15 +43,20 @@ from robot.calibration.model import (
     CAMERA_PARAMS,
     DISPARITY_PARAMS,
     ODOMETRY_PARAMS,
+    WALL_PARAMS,
+    WALL_PREFIX,
     ParamLayout,
     camera_rotation,
     disparity_effect,
     disparity_prior_std,
+    is_nuisance,
+    is_wall_param,
 )
 from robot.calibration.solver import SolveOptions, solve
 from robot.config import RobotConfig
 from robot.localization.localizer import LocalizationResult
 from robot.localization.measurements import PlaneMeasurement
+from robot.maps.plane_map import DEFAULT_TOLERANCE, PlaneMap
 
 log = logging.getLogger(__name__)
 
@@ -83,28 +88,43 @@ class OnlineSettings:
     bound_radius: float = 2e-3  # relative
     bound_l: float = 1e-2  # relative
     inflate: bool = True  # add the estimate's uncertainty to each corrected measurement's covariance
+    # Walls as built: each seen wall's offset, turn and plumb are states kept from window to window
+    # (every view of a wall shares them; counted per window they would be counted again each time).
+    walls: bool = True
+    max_walls: int = 64  # the walls kept; beyond, the one seen longest ago is dropped (marginalised)
+    wall_pivot_height: float = 0.5  # m: where a wall's turn and tilt pivot when no map gives its centre
 
 
 class CalibrationFilter:
     """Online calibration states for one robot config (its values are the prior's mean)."""
 
-    def __init__(self, robot: RobotConfig, settings: Optional[OnlineSettings] = None):
+    def __init__(self, robot: RobotConfig, settings: Optional[OnlineSettings] = None,
+                 plane_map: Optional[PlaneMap] = None):
         self.robot = robot
         self.settings = settings or OnlineSettings()
-        cams = [c.name for c in robot.cameras]
-        self.layout = ParamLayout(cams)
-        self.nominal = self.layout.nominal(robot)
-        self.names = [f"{c}.{p}" for c in cams for p in ONLINE_CAMERA_PARAMS + DISPARITY_PARAMS] + \
-                     [f"odometry.{p}" for p in ODOMETRY_PARAMS]
-        self.index = [self.layout.index(n) for n in self.names]
-        self.prior_std = self._prior_std()
-        self.bounds = self._bounds()
+        self.plane_map = plane_map  # the walls' centres and tolerances (None: the default tolerance)
+        self._map_planes = {p.id: p for p in plane_map.planes} if plane_map is not None else {}
         self.reset()
         self._warned: set = set()
 
     # -- state ------------------------------------------------------------------------------------
 
+    def _set_layout(self, walls: Sequence[str]) -> None:
+        cams = [c.name for c in self.robot.cameras]
+        self.layout = ParamLayout(cams, walls)
+        self.nominal = self.layout.nominal(self.robot)
+        self.names = [f"{c}.{p}" for c in cams for p in ONLINE_CAMERA_PARAMS + DISPARITY_PARAMS] + \
+                     [f"odometry.{p}" for p in ODOMETRY_PARAMS] + \
+                     [f"{WALL_PREFIX}{w}.{p}" for w in walls for p in WALL_PARAMS]
+        self.index = [self.layout.index(n) for n in self.names]
+        self.prior_std = self._prior_std()
+        self.bounds = self._bounds()
+
     def reset(self) -> None:
+        self.wall_pivot: Dict[str, np.ndarray] = {}
+        self.wall_std: Dict[str, np.ndarray] = {}
+        self._wall_seen: Dict[str, float] = {}
+        self._set_layout(())
         self.mean = self.nominal[self.index].copy()
         self.cov = np.diag(self.prior_std ** 2)
         self.info_data = np.zeros((len(self.names), len(self.names)))
@@ -113,12 +133,77 @@ class CalibrationFilter:
         self._collector = Collector(self.robot)
         self._last_keyframe = -math.inf
 
+    @property
+    def walls(self) -> Sequence[str]:
+        return self.layout.walls
+
+    def _wall_prior(self, plane_id: str, n_G: np.ndarray, d_G: float, pose: Sequence[float]):
+        """(pivot (3,), std (3,)) of a wall's as-built deviation: the map plane's tolerance as the
+        offset, the tolerance over its length and height (at least 1 m) as the turn and the tilt,
+        like the localizer's integrity model; without a map the default tolerance, pivoting where
+        the robot first saw the wall."""
+        plane = self._map_planes.get(plane_id)
+        if plane is not None:
+            v = np.concatenate([np.asarray(poly, float).reshape(-1, 3) for poly in plane.polygons])
+            pivot = v.mean(axis=0)
+            extent = v.max(axis=0) - v.min(axis=0)
+            length, height = math.hypot(extent[0], extent[1]), float(extent[2])
+            tol = float(plane.tolerance)
+        else:
+            p = np.array([pose[0], pose[1], self.settings.wall_pivot_height])
+            pivot = p - (float(n_G @ p) + float(d_G)) * n_G
+            length = height = 1.0
+            tol = DEFAULT_TOLERANCE
+        return pivot, np.array([tol, tol / max(length, 1.0), tol / max(height, 1.0)])
+
+    def _add_walls(self, data, t: float) -> None:
+        """States for the walls of this window not yet kept (their prior), and the oldest dropped
+        beyond ``max_walls``."""
+        new = {}
+        for kf in data.keyframes:
+            for o in kf.observations:
+                n_G = np.asarray(o.n_ground, float)
+                if abs(n_G[2]) > 0.3:  # floors and ceilings: no turn or plumb (not modelled)
+                    continue
+                self._wall_seen[o.plane_id] = t
+                if o.plane_id not in self.wall_pivot and o.plane_id not in new:
+                    new[o.plane_id] = self._wall_prior(o.plane_id, n_G, o.d_ground, kf.pose)
+        walls = list(self.walls)
+        if new:
+            for w, (pivot, std) in new.items():
+                self.wall_pivot[w], self.wall_std[w] = pivot, std
+            walls += list(new)
+        drop = set()
+        if len(walls) > self.settings.max_walls:
+            oldest = sorted(walls, key=lambda w: self._wall_seen.get(w, -math.inf))
+            drop = set(oldest[:len(walls) - self.settings.max_walls])
+        if not new and not drop:
+            return
+        old_names = list(self.names)
+        keep = [w for w in walls if w not in drop]
+        mean, cov, info = self.mean, self.cov, self.info_data
+        for w in drop:
+            del self.wall_pivot[w], self.wall_std[w]
+            self._wall_seen.pop(w, None)
+        self._set_layout(keep)
+        pos = {n: i for i, n in enumerate(old_names)}
+        mine = [j for j, n in enumerate(self.names) if n in pos]
+        theirs = [pos[self.names[j]] for j in mine]
+        self.mean = self.nominal[self.index].copy()
+        self.mean[mine] = mean[theirs]
+        self.cov = np.diag(self.prior_std ** 2)
+        self.cov[np.ix_(mine, mine)] = cov[np.ix_(theirs, theirs)]
+        self.info_data = np.zeros((len(self.names), len(self.names)))
+        self.info_data[np.ix_(mine, mine)] = info[np.ix_(theirs, theirs)]
+
     def _prior_std(self) -> np.ndarray:
         loc, s = self.robot.localizer, self.settings
         out = []
         for n in self.names:
             cam, p = n.rsplit(".", 1)
-            if cam == "odometry":
+            if is_wall_param(n):
+                out.append(float(self.wall_std[cam[len(WALL_PREFIX):]][WALL_PARAMS.index(p)]))
+            elif cam == "odometry":
                 r0, L0 = self.nominal[self.layout.odometry_slice][[0, 4]]
                 out.append({"wheel_radius": s.radius_std * r0, "lx_plus_ly": s.l_std * L0}.get(p, s.radius_diff_std * r0))
             elif p in DISPARITY_PARAMS:  # the camera's disparity error: a nuisance with a physical prior
@@ -139,7 +224,7 @@ class CalibrationFilter:
             cam, p = n.rsplit(".", 1)
             if cam == "odometry":
                 out.append(s.bound_l * L0 if p == "lx_plus_ly" else s.bound_radius * r0)
-            elif p in DISPARITY_PARAMS:
+            elif is_nuisance(n):
                 out.append(math.inf)
             elif p == "depth_scale":
                 out.append(s.bound_scale)
@@ -160,12 +245,13 @@ class CalibrationFilter:
 
     @property
     def nuisance(self) -> np.ndarray:
-        """The camera's disparity error terms: estimated so the scale is not biased, never reported."""
-        return np.array([n.rsplit(".", 1)[1] in DISPARITY_PARAMS for n in self.names])
+        """The camera's disparity error terms and the walls as built: estimated so the calibration
+        is not biased, never reported."""
+        return np.array([is_nuisance(n) for n in self.names], bool)
 
     def observed(self) -> np.ndarray:
         """Which states the data so far has observed: its information alone, not the prior's (only
-        the disparity terms keep theirs: they are a physical bound, not a guess). Nuisances: False."""
+        the disparity terms and the walls keep theirs: physical bounds, not guesses). Nuisances: False."""
         nuis = self.nuisance
         reg = np.diag(np.where(nuis, 1.0, 1e-9) / self.prior_std ** 2)
         try:
@@ -209,6 +295,9 @@ class CalibrationFilter:
         data = self._collector.dataset()
         if self.t_last is not None:
             self._random_walk(max(0.0, data.keyframes[0].t - self.t_last))
+        if self.settings.walls:
+            self._add_walls(data, t_end)
+            data.walls = {w: self.wall_pivot[w] for w in self.walls}
         theta = self.theta()
         try:
             info_prior = np.linalg.inv(self.cov)
@@ -241,7 +330,9 @@ class CalibrationFilter:
         q = []
         for n in self.names:
             cam, p = n.rsplit(".", 1)
-            if cam == "odometry":
+            if is_wall_param(n):
+                q.append(0.0)  # a wall stays as it was built
+            elif cam == "odometry":
                 q.append(s.walk_radius * (self.nominal[self.layout.index(n)] if p in ("wheel_radius", "lx_plus_ly") else r0))
             elif p in DISPARITY_PARAMS:
                 q.append(s.walk_disparity)
@@ -352,7 +443,7 @@ class CalibrationFilter:
         out = []
         for i, n in enumerate(self.names):
             p = n.rsplit(".", 1)[1]
-            if p in DISPARITY_PARAMS:
+            if is_nuisance(n):
                 continue
             angle = p in ("roll", "pitch", "yaw")
             k = math.degrees(1.0) if angle else 1.0
@@ -370,14 +461,23 @@ class CalibrationFilter:
                 "scale_warnings": self.warned}
 
     def to_json(self) -> Dict[str, object]:
-        """The state to persist: per camera (by serial number where the config has one, else by name)."""
+        """The state to persist: per camera (by serial number where the config has one, else by name).
+        The walls' states are left out (marginalised): they belong to a map, not to the robot."""
         cams: Dict[str, object] = {}
         for cfg in self.robot.cameras:
             key = _camera_key(cfg)
             cams[key] = {"camera": cfg.name, "nominal": [float(v) for v in self._camera_nominal(cfg.name)]}
-        return {"version": STATE_VERSION, "names": [self._persist_name(n) for n in self.names],
-                "mean": [float(v) for v in self.mean], "cov": [[float(v) for v in row] for row in self.cov],
-                "info_data": [[float(v) for v in row] for row in self.info_data],
+        k = [i for i, n in enumerate(self.names) if not is_wall_param(n)]
+        w = [i for i, n in enumerate(self.names) if is_wall_param(n)]
+        cov, info = self.cov[np.ix_(k, k)], self.info_data[np.ix_(k, k)]
+        if w:  # the data's information with the walls marginalised (at their prior), not held known
+            I_kw = self.info_data[np.ix_(k, w)]
+            I_ww = self.info_data[np.ix_(w, w)] + np.diag(1.0 / self.prior_std[w] ** 2)
+            info = info - I_kw @ np.linalg.solve(I_ww, I_kw.T)
+            info = 0.5 * (info + info.T)
+        return {"version": STATE_VERSION, "names": [self._persist_name(self.names[i]) for i in k],
+                "mean": [float(self.mean[i]) for i in k], "cov": [[float(v) for v in row] for row in cov],
+                "info_data": [[float(v) for v in row] for row in info],
                 "odometry_nominal": [float(v) for v in self.nominal[self.layout.odometry_slice]],
                 "cameras": cams, "windows": self.windows}
 

@@ -68,6 +68,12 @@ COARSE_STRIDE = 32  # the same for the first, coarse verification of every clust
 MAX_VERIFY = 400  # clusters verified by prediction (all of them in a building floor)
 REFINE_SLACK = 10.0  # nats a refined pose may score below its start and still be taken (scoring noise)
 MAX_REFINE = 24  # verified candidates refined by the localizer (those within reach of the best)
+# A later view's pose relative to the first comes from odometry (an in-place turn): refined per
+# hypothesis within these bounds (wheel odometry turns a few tenths of a degree off per 45 deg).
+VIEW_POS_STD = 0.02  # m
+VIEW_PHI_STD = math.radians(1.0)
+VIEW_MAX_SHIFT = 0.05  # m: a refined view pose farther from the odometry's is a wrong wall
+VIEW_MAX_TURN = math.radians(3.0)
 
 
 @dataclass
@@ -391,7 +397,7 @@ class _Scorer:
                  max_range: float, stride: int = SCORE_STRIDE):
         self.robot, self.map, self.index, self.max_range = robot, plane_map, index, max_range
         self.items = []
-        for frames, rel in views:
+        for view, (frames, rel) in enumerate(views):
             for f in frames:
                 cam = robot.camera(f.camera)
                 stride = max(1, int(round(stride * f.depth.shape[1] / float(cam.width))))
@@ -407,10 +413,13 @@ class _Scorer:
                 T = cam.T_robot_camera
                 z_robot = (p_c @ T[:3, :3].T + T[:3, 3])[:, 2].reshape(h, w)
                 valid = (z > robot.localizer.min_range) & (z < max_range) & (z_robot > 0.05)
-                self.items.append((cam, grid, z, valid, rel))
+                self.items.append((cam, grid, z, valid, rel, view))
 
-    def score(self, pose: Tuple[float, float, float], coarse: bool = False) -> Tuple[float, float, List[str]]:
+    def score(self, pose: Tuple[float, float, float], coarse: bool = False,
+              rels: Optional[Sequence[Pose]] = None) -> Tuple[float, float, List[str]]:
         """(log-likelihood, share of wall pixels that agree, supporting walls) of the frames at ``pose``.
+
+        ``rels``: each view's pose relative to the first, if not the odometry's (refined for this pose).
 
         ``coarse``: for hypotheses straight from a wall pair, a few centimetres and a degree off
         their refined pose; the agreement band is widened so that they are ranked by where
@@ -418,7 +427,9 @@ class _Scorer:
         """
         total, agree, scored, through = 0.0, 0, 0, 0
         seen: Dict[str, int] = {}
-        for cam, grid, z, valid, rel in self.items:
+        for cam, grid, z, valid, rel, view in self.items:
+            if rels is not None:
+                rel = rels[view]
             T_gc = pose_to_T_ground_robot(*compose(pose, rel)) @ cam.T_robot_camera
             cands = self.index.in_view(T_gc, grid.frustum, self.max_range)
             views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
@@ -534,8 +545,10 @@ class Relocalizer:
         # Refine the best with the normal localizer and score again.
         best_score = scored[0][0]
         refined: List[Hypothesis] = []
+        # The coarse scores use the odometry's view poses: their error grows with every view.
+        reach = 4 * UNIQUE_MARGIN * len(views)
         for s, _support, x, y, phi, _planes in scored[:MAX_REFINE]:
-            if s < best_score - 4 * UNIQUE_MARGIN and len(refined) >= 2:
+            if s < best_score - reach and len(refined) >= 2:
                 break
             h = self._refine(views, (x, y, phi), scorer)
             if h is not None:
@@ -547,14 +560,20 @@ class Relocalizer:
             return RelocalizationResult(NONE, [], "no hypothesis explains the depth (support below "
                                         f"{MIN_SUPPORT:.0%})", ms, len(walls))
         hyps_out.sort(key=lambda h: -h.score)
-        close = [h for h in hyps_out if h.score >= hyps_out[0].score - UNIQUE_MARGIN]
+        # Each further view brings its own model error (its odometry pose, its clutter): over many
+        # views a twin of a symmetric building drifts tens of nats from the right pose, so the
+        # margin is per view, and a multi-view answer must be one the localizer refined.
+        margin = UNIQUE_MARGIN * len(views)
+        close = [h for h in hyps_out if h.score >= hyps_out[0].score - margin]
         best = hyps_out[0]
         if (len(close) == 1 and best.status in FIX_STATUSES and best.support >= UNIQUE_SUPPORT
-                and best.see_through <= UNIQUE_SEE_THROUGH):
+                and best.see_through <= UNIQUE_SEE_THROUGH and (best.refined or len(views) == 1)):
             return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
         if len(close) == 1:
             h = hyps_out[0]
-            if h.status not in FIX_STATUSES:
+            if not h.refined and len(views) > 1:
+                why = "best hypothesis of several views not refined by the localizer"
+            elif h.status not in FIX_STATUSES:
                 why = f"best hypothesis not confirmed by the localizer ({h.status})"
             elif h.see_through > UNIQUE_SEE_THROUGH:
                 why = (f"the cameras see through walls the best hypothesis predicts ({h.see_through:.1%} of its pixels; "
@@ -562,11 +581,13 @@ class Relocalizer:
             else:
                 why = f"best hypothesis explains only {h.support:.0%} of the wall pixels (unique needs {UNIQUE_SUPPORT:.0%})"
             return RelocalizationResult(AMBIGUOUS, hyps_out, why, ms, len(walls))
-        return RelocalizationResult(AMBIGUOUS, close, f"{len(close)} hypotheses within {UNIQUE_MARGIN:.0f} nats of "
+        return RelocalizationResult(AMBIGUOUS, close, f"{len(close)} hypotheses within {margin:.0f} nats of "
                                     "each other: the views cannot tell them apart", ms, len(walls))
 
     def _refine(self, views: Sequence[View], pose, scorer: _Scorer) -> Optional[Hypothesis]:
-        """The normal localizer from this hypothesis, on the first view it can confirm it from."""
+        """The normal localizer from this hypothesis, on the first view it can confirm it from; the
+        other views' poses relative to it are then refined the same way (odometry of a turn is off
+        by a fraction of a degree, which over several metres would score a right pose down)."""
         cov0 = coarse_covariance(0.05, math.radians(3.0))
         res = None
         for fs, rel in views:
@@ -580,7 +601,8 @@ class Relocalizer:
         if res.status == "no_planes":
             return unrefined
         p = compose((res.x, res.y, float(wrap_angle(res.phi))), back)
-        s, support, planes = scorer.score(p)
+        rels = self._refine_views(views, p) if len(views) > 1 else None
+        s, support, planes = scorer.score(p, rels=rels)
         if s0 > s + REFINE_SLACK:  # the refinement went astray (a wrong wall): keep the unrefined pose
             return unrefined
         # The covariance moves with the composition: d(pose_k o back)/d(pose_k).
@@ -588,6 +610,23 @@ class Relocalizer:
         J = np.array([[1.0, 0.0, -sn * back[0] - c * back[1]], [0.0, 1.0, c * back[0] - sn * back[1]], [0.0, 0.0, 1.0]])
         cov = J @ np.asarray(res.cov) @ J.T
         return Hypothesis(p[0], p[1], p[2], cov, s, support, planes, True, res.status, scorer.last_see_through)
+
+    def _refine_views(self, views: Sequence[View], pose: Pose) -> List[Pose]:
+        """Each view's pose relative to the first, re-estimated by the localizer from ``pose`` and the
+        odometry; the odometry's where the localizer finds no fix near it."""
+        cov = coarse_covariance(VIEW_POS_STD, VIEW_PHI_STD)
+        back = inverse(pose)
+        out: List[Pose] = [views[0][1]]
+        for fs, rel in views[1:]:
+            res = self.localizer.localize(fs, compose(pose, rel), cov)
+            if res.status in FIX_STATUSES:
+                r = compose(back, (res.x, res.y, float(wrap_angle(res.phi))))
+                if (math.hypot(r[0] - rel[0], r[1] - rel[1]) <= VIEW_MAX_SHIFT
+                        and abs(float(wrap_angle(r[2] - rel[2]))) <= VIEW_MAX_TURN):
+                    out.append(r)
+                    continue
+            out.append(rel)
+        return out
 
 
 def _merge(hyps: List[Hypothesis]) -> List[Hypothesis]:

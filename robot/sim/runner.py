@@ -28,6 +28,7 @@ from robot.config import RobotConfig
 from robot.config.calibration import calibrated_frame
 from robot.control.core import ControllerCore
 from robot.control.path_file import PathPlan
+from robot.control.recovery import views_from_latest
 from robot.control.trajectory import ARRIVED, DONE, TrajectoryController
 from robot.fusion.calibration_filter import CalibrationFilter
 from robot.localization.localizer import Localizer
@@ -164,7 +165,7 @@ class _PathRun:
         self._reconnects = 0
         self.frame_check = FrameCheck(robot.health.frame_max_ahead, robot.health.frame_max_age)
         self.commands: List[Tuple[float, float, float, float, bool]] = []
-        calibration = CalibrationFilter(robot) if settings.online_calibration and settings.vision else None
+        calibration = CalibrationFilter(robot, plane_map=plane_map) if settings.online_calibration and settings.vision else None
         self.core = ControllerCore(robot, vision=settings.vision, t_start=0.0, plane_map=plane_map,
                                    calibration=calibration)
         self.tap = None
@@ -179,6 +180,8 @@ class _PathRun:
         self.plane_map = plane_map
         self._relocalizer: Optional[Relocalizer] = None
         self.relocalizations: List[Tuple[float, str]] = []  # (t, verdict)
+        self.relocalization_views: List[Tuple[float, Tuple[float, float, float]]] = []  # (t, odometry pose from view 0)
+        self._views: List[Tuple[list, Tuple[float, float, float]]] = []  # of the present relocalization sequence
         self.recovery_log: List[Tuple[float, str]] = []  # (t, recovery state) at every change
 
         self.control_us = int(round(_US / robot.control.rate))
@@ -291,15 +294,23 @@ class _PathRun:
         return True
 
     def _relocalize(self, t: float, frames) -> None:
-        """Global relocalization on these frames (no prior); a unique verdict sets the pose."""
+        """Global relocalization on these frames (no prior) and, after an in-place turn, on the
+        earlier views of the sequence with their odometry poses; a unique verdict sets the pose."""
         if self._relocalizer is None:
             self._relocalizer = Relocalizer(self.robot, self.plane_map, self.localizer)
-        res = self._relocalizer.relocalize(frames)
+        rec = self.core.recovery
+        if rec.view_index == 0:
+            self._views = []
+        rel = self.core.recovery_view_pose()
+        self._views.append((frames, rel))
+        self.relocalization_views.append((t, rel))
+        first, more = views_from_latest(self._views)
+        res = self._relocalizer.relocalize(first, more_views=more)
         self.relocalizations.append((t, res.verdict))
         if res.verdict == "unique":
             h = res.hypotheses[0]
             self.core.set_pose(t, h.x, h.y, h.phi, np.asarray(h.cov))
-        self.core.recovery.on_verdict(t, res.verdict, [h.to_json() for h in res.hypotheses[:8]], res.reason)
+        rec.on_verdict(t, res.verdict, [h.to_json() for h in res.hypotheses[:8]], res.reason)
 
     def _kidnap(self, _t: float, payload: object) -> bool:
         self.world.board.pose = tuple(float(v) for v in payload)  # type: ignore[assignment]

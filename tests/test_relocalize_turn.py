@@ -1,0 +1,166 @@
+"""Relocalization with an in-place turn (recovery.turn_in_place), on the simulated clock."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+from drivers.sim.render import Box
+from drivers.sim.world import WorldSettings
+from robot.config import load_robot_config
+from robot.config.recovery import RecoveryConfig
+from robot.control.path_file import PathPlan, StartPose, Waypoint
+from robot.control.recovery import AMBIGUOUS, CONFIRMING, RELOCALIZING, TRACKING, TURNING, RecoverySupervisor
+from robot.maps.plane_map import load_plane_map
+from robot.sim.runner import RunSettings, _PathRun
+
+ROBOT = load_robot_config("config/robot.yaml")
+TURNING_ROBOT = replace(ROBOT, recovery=replace(ROBOT.recovery, turn_in_place=True))
+HOUSE = load_plane_map("config/maps/fzk_haus_ground.yaml")
+ARENA = load_plane_map("config/maps/paper_arena.yaml")
+# In a bedroom of the house: the two walls in view fit two places of the floor (ambiguous), and
+# there is room to turn.
+HOUSE_POSE = (6.093, 8.713, -0.872)
+ARENA_POSE = (0.45, 0.55, 0.3)
+
+
+class _Run(_PathRun):
+    """Records the true pose and the number of views at every relocalization."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.at_relocalization = []  # (t, true pose, views, verdict, hypotheses)
+
+    def _relocalize(self, t, frames):
+        super()._relocalize(t, frames)
+        self.at_relocalization.append((t, self.world.truth, len(self._views), self.relocalizations[-1][1],
+                                       list(self.core.recovery.hypotheses)))
+
+
+def _drive(robot, plane_map, pose, max_time, world=None):
+    plan = PathPlan((Waypoint(pose[0], pose[1], pose[2], speed=0.2, tolerance=0.01),), StartPose(*pose))
+    run = _Run(robot, plane_map, plan, RunSettings(vision=True, max_time=max_time, known_start=False,
+                                                   world=world or WorldSettings()))
+    run.drive()
+    return run, run.result(0.0)
+
+
+def _xy(p):
+    return (p["x"], p["y"]) if isinstance(p, dict) else (p[0], p[1])
+
+
+def _moved(a, b) -> float:
+    (ax, ay), (bx, by) = _xy(a), _xy(b)
+    return math.hypot(ax - bx, ay - by)
+
+
+def test_a_turn_resolves_an_ambiguous_view_and_the_robot_resumes():
+    run, res = _drive(TURNING_ROBOT, HOUSE, HOUSE_POSE, 40.0)
+    verdicts = [v for _, v in run.relocalizations]
+    assert verdicts[0] != "unique" and verdicts[-1] == "unique", verdicts
+    states = [s for _, s in run.recovery_log]
+    assert TURNING in states and states.index(TURNING) < states.index(CONFIRMING)
+    t_unique, truth, views, _, hyps = run.at_relocalization[-1]
+    assert views >= 2
+    # The answer is for where the robot stands after the turn, within millimetres and a fraction of a degree.
+    assert _moved(hyps[0], truth) < 0.01 and abs(math.remainder(hyps[0]["phi"] - truth[2], 2 * math.pi)) < math.radians(0.5)
+    # A pure rotation: no translation commanded, a few tenths of a millimetre of slip at most.
+    turn_cmds = [c for c in run.commands if c[4] and c[0] <= t_unique and abs(c[3]) > 1e-9]
+    assert turn_cmds and all(c[1] == 0.0 and c[2] == 0.0 for c in turn_cmds)
+    assert max(abs(c[3]) for c in turn_cmds) <= TURNING_ROBOT.recovery.turn_rate + 1e-9
+    assert max(_moved(p, HOUSE_POSE) for _, p, _, _, _ in run.at_relocalization) < 0.003
+    # Then it confirms, tracks and drives its (short) path.
+    assert TRACKING in states[states.index(CONFIRMING):]
+    assert res.finished, res.reason
+    assert max(r.error for r in res.targets) < 0.01
+
+
+def test_without_turn_in_place_the_robot_stays_still_and_ambiguous():
+    assert RecoveryConfig().turn_in_place is False
+    run, res = _drive(ROBOT, HOUSE, HOUSE_POSE, 5.0)
+    assert run.relocalizations and all(v != "unique" for _, v in run.relocalizations)
+    assert TURNING not in [s for _, s in run.recovery_log]
+    assert all(views == 1 for _, _, views, _, _ in run.at_relocalization)
+    assert not any(sent and max(abs(vx), abs(vy), abs(wz)) > 1e-9 for _, vx, vy, wz, sent in run.commands)
+    assert _moved(run.world.truth, HOUSE_POSE) < 1e-4
+    assert not res.finished
+
+
+def test_the_square_arena_stays_ambiguous_after_a_full_turn_with_the_truth_among_the_hypotheses():
+    run, _ = _drive(TURNING_ROBOT, ARENA, ARENA_POSE, 24.0)
+    step = TURNING_ROBOT.recovery.turn_step_deg
+    full = [r for r in run.at_relocalization if r[2] == int(round(360.0 / step))]
+    assert full, [(t, v, n) for t, _, n, v, _ in run.at_relocalization]
+    _, truth, _, verdict, hyps = full[0]
+    assert all(v != "unique" for _, v in run.relocalizations)
+    assert verdict == "ambiguous" and len(hyps) == 4
+    assert min(_moved(h, truth) + abs(math.remainder(h["phi"] - truth[2], 2 * math.pi)) for h in hyps) < 0.02
+    assert run.core.recovery.state == AMBIGUOUS
+    assert CONFIRMING not in [s for _, s in run.recovery_log]
+
+
+def test_an_obstacle_inside_the_turning_circle_prevents_the_turn():
+    c, s = math.cos(HOUSE_POSE[2]), math.sin(HOUSE_POSE[2])
+    person = Box(HOUSE_POSE[0] + 0.28 * c, HOUSE_POSE[1] + 0.28 * s, 0.1, 0.8, 1.75, HOUSE_POSE[2])  # at the front lens
+    run, _ = _drive(TURNING_ROBOT, HOUSE, HOUSE_POSE, 6.0, WorldSettings(obstacles=(person,)))
+    assert run.relocalizations and all(v != "unique" for _, v in run.relocalizations)
+    assert not any(sent and abs(wz) > 1e-9 for _, _, _, wz, sent in run.commands)
+    assert abs(math.remainder(run.world.truth[2] - HOUSE_POSE[2], 2 * math.pi)) < math.radians(0.1)
+    rec = run.core.recovery
+    assert rec.state in (AMBIGUOUS, RELOCALIZING) and "in-place turn was stopped" in rec.reason, rec.reason
+    assert run.core.counters.get("safety_stop", 0) >= 1
+
+
+# -- the state machine alone ------------------------------------------------------------------------
+
+
+def test_the_supervisor_turns_step_by_step_up_to_the_limit_then_stays_ambiguous():
+    sup = RecoverySupervisor(RecoveryConfig(turn_in_place=True, turn_step_deg=90.0, max_turn_deg=200.0))
+    sup.start_without_pose(0.0)
+    assert sup.wants_relocalization(0.0) and sup.view_index == 0
+    sup.on_verdict(0.1, "none", [], "fewer than two non-parallel walls in view")
+    assert sup.state == TURNING and sup.holding and sup.turn_goal == math.radians(90.0)
+    assert not sup.wants_relocalization(0.2)  # nothing to do while turning
+    sup.turn_done(3.0)
+    assert sup.state == RELOCALIZING and sup.wants_relocalization(3.0) and sup.view_index == 1
+    sup.on_verdict(3.1, "ambiguous", [{"x": 0.0}, {"x": 1.0}])
+    assert sup.state == TURNING and sup.turn_goal == math.radians(180.0)
+    sup.turn_done(6.0)
+    assert sup.wants_relocalization(6.0) and sup.view_index == 2
+    sup.on_verdict(6.1, "ambiguous", [{"x": 0.0}, {"x": 1.0}])  # 270 deg would pass max_turn_deg
+    assert sup.state == AMBIGUOUS and "after turning 180 deg" in sup.reason
+    # The retries look again from here, without turning again.
+    assert sup.wants_relocalization(6.1 + sup.config.retry_period) and sup.view_index == 0
+    sup.on_verdict(9.0, "ambiguous", [{"x": 0.0}, {"x": 1.0}])
+    assert sup.state == AMBIGUOUS
+    # A new trigger may turn again.
+    sup.force(10.0, "operator")
+    assert sup.wants_relocalization(10.0)
+    sup.on_verdict(10.1, "ambiguous", [{"x": 0.0}, {"x": 1.0}])
+    assert sup.state == TURNING
+
+
+def test_a_stopped_turn_keeps_the_verdict_and_a_unique_one_confirms():
+    sup = RecoverySupervisor(RecoveryConfig(turn_in_place=True))
+    sup.start_without_pose(0.0)
+    sup.wants_relocalization(0.0)
+    sup.on_verdict(0.1, "ambiguous", [{"x": 0.0}, {"x": 1.0}])
+    sup.turn_stopped(0.5, "protective stop: obstacle inside the turning circle")
+    assert sup.state == AMBIGUOUS and len(sup.hypotheses) == 2 and "turning circle" in sup.reason
+    assert sup.wants_relocalization(0.5 + sup.config.retry_period)
+    sup.on_verdict(3.0, "ambiguous", [{"x": 0.0}, {"x": 1.0}])
+    assert sup.state == AMBIGUOUS  # not again after a stop
+    sup.force(4.0, "operator")
+    sup.wants_relocalization(4.0)
+    sup.on_verdict(4.1, "none", [])
+    sup.turn_done(6.0)
+    sup.wants_relocalization(6.0)
+    sup.on_verdict(6.1, "unique", [{"x": 0.0}])
+    assert sup.state == CONFIRMING and not sup.in_sequence
+    # Disabled (the default): no turn.
+    off = RecoverySupervisor(RecoveryConfig())
+    off.start_without_pose(0.0)
+    off.wants_relocalization(0.0)
+    off.on_verdict(0.1, "ambiguous", [{"x": 0.0}, {"x": 1.0}])
+    assert off.state == AMBIGUOUS
+
