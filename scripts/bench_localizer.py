@@ -58,7 +58,7 @@ def sweeps(quick):
     n = 6 if quick else 21
     lines = ["### Section 4.2 sweeps (both cameras, realistic D435i noise, coarse std assumed 0.1 m / 10 deg)", "",
              "| true heading | swept | method | frames | all planes right | wrong planes (coarse heading < 45 deg off) | "
-             "wrong planes (>= 45 deg off: symmetric) | dropped | status ok | "
+             "wrong planes (>= 45 deg off: symmetric) | dropped | full fix (ok or unprotected) | "
              "pos err median / p95 (mm) | heading err median / p95 (deg) |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     totals = {"joint": [0, 0, 0], "paper": [0, 0, 0]}
@@ -125,17 +125,22 @@ def static_accuracy(quick):
                 e = np.array([res.x - truth[0], res.y - truth[1], math.remainder(res.phi - truth[2], 2 * math.pi)])
                 nees[m].append(float(e @ np.linalg.solve(res.cov, e)))
     lines = ["### Static accuracy (random poses in the arena, two clutter boxes, coarse within 0.1 m and 10 deg)", "",
-             "| method | poses | status ok | pos err median / p95 (mm) | heading err median / p95 (deg) | "
+             "| method | poses | ok / unprotected | pos err median / p95 (mm) | heading err median / p95 (deg) | "
              "NEES mean / median | target |",
              "|---|---|---|---|---|---|---|"]
     for m, e in errs.items():
         e = np.array(e)
-        lines.append(f"| {m} | {n} | {statuses[m].count('ok')} | {np.median(e[:, 0]):.3f} / {np.percentile(e[:, 0], 95):.3f} | "
+        lines.append(f"| {m} | {n} | {statuses[m].count('ok')} / {statuses[m].count('unprotected')} | "
+                     f"{np.median(e[:, 0]):.3f} / {np.percentile(e[:, 0], 95):.3f} | "
                      f"{np.median(e[:, 1]):.4f} / {np.percentile(e[:, 1], 95):.4f} | "
                      f"{np.mean(nees[m]):.2f} / {np.median(nees[m]):.2f} | median <= 3 mm and <= 0.2 deg: "
                      f"{'met' if np.median(e[:, 0]) <= 3 and np.median(e[:, 1]) <= 0.2 else 'NOT met'} |")
-    lines += ["", "NEES: e^T C^-1 e of the pose error e over (x, y, phi) with the covariance C the localizer "
-              "reported; an honest covariance gives mean 3 and median 2.37."]
+    lines += ["", "Errors over full fixes (ok or unprotected: from a cold start one frame's protection level rests "
+              "on the prior, so most are unprotected; docs/localization-integrity.md). NEES: e^T C^-1 e of the pose "
+              "error e over (x, y, phi) with the covariance C the localizer reported. These scenes draw no depth "
+              "scale, mount or as-built error, which the covariance must still cover at their configured uncertainty, "
+              "so far under 3 is the expected value here; the integrity section draws those errors and measures NEES "
+              "against 3."]
     return lines
 
 
@@ -144,11 +149,16 @@ def efficiency(quick):
     scene = SimScene(ARENA)
     rng = np.random.default_rng(5)
     n = 12 if quick else 40
-    frames_list = [[render_depth_frame(ROBOT, scene, c.name, truth, rng=rng) for c in ROBOT.cameras] for _ in range(n)]
+    # The bound's own noise model: independent pixel noise. The realistic camera's fixed disparity
+    # wave is the same in every frame of a unit, a bias no estimator averages down and no
+    # Cramer-Rao bound of pixel noise contains (the integrity section measures that case).
+    frames_list = [[render_depth_frame(ROBOT, scene, c.name, truth, rng=rng, noise="simple") for c in ROBOT.cameras]
+                   for _ in range(n)]
     bound = pose_crlb(ROBOT, ARENA, truth, DepthNoise())
     std_bound = np.sqrt(np.diag(bound))
     lines = ["### Efficiency against the Cramer-Rao bound", "",
-             f"Pose {truth}, both cameras, {n} noisy frames each. Bound from every pixel of the visible walls "
+             f"Pose {truth}, both cameras, {n} noisy frames each (the simple camera model: independent pixel noise, "
+             "which is what the bound assumes). Bound from every pixel of the visible walls "
              f"(std x {std_bound[0] * 1e3:.4f} mm, y {std_bound[1] * 1e3:.4f} mm, phi {math.degrees(std_bound[2]):.5f} deg). "
              "A stride s uses 1/s^2 of the pixels, so its own bound is about s times larger; both ratios are shown.", "",
              "| method | pixel stride | RMSE x, y (mm) | RMSE phi (deg) | RMSE / bound (x, y, phi) | RMSE / (s x bound) |",
