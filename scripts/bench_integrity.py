@@ -365,7 +365,7 @@ def section(quick: bool = False) -> str:
              f"{s['ok_gt_50mm'] - s['ok_gt_50mm_hidden'] - s['ok_gt_50mm_within_cov']} else); wrong identifications used "
              f"0 (got {s['wrong_used']}, {s['wrong_used_visible']} of a wall not hidden); NEES mean in [2, 4] (got "
              f"{s['nees_mean']:.2f}).",
-             f"- {out['seconds']:.0f} s for {n} scenes (rendering included).",
+             f"- {out['seconds']:.0f} s for {n} scenes (rendering included).", *cases(out["rows"]),
              "- 'ok' is a vouched-for fix: fully observed, consistent, and both protection levels under their alert "
              "limits; 'unprotected' is a full, consistent fix whose bound is too wide to vouch for (the fusion still "
              "uses its planes, with their honest covariance, and the quality stays `degraded` while the fused bound is "
@@ -379,14 +379,21 @@ def section(quick: bool = False) -> str:
              "", cal["table"], "",
              f"- Targets here too: misleading 0 (got {sc['misleading']}); ok with error > 50 mm 0 (got "
              f"{sc['ok_gt_50mm']}); NEES mean in [2, 4] (got {sc['nees_mean']:.2f}); available {sc['available']} of "
-             f"{n_cal}."]
-    bad = [r for r in out["rows"] if r["misleading"] or r["ok_beyond_cov"] or (r["ok_gt"] and not r["hidden_wall"])
-           or any(v >= HIDDEN_SHARE for v in r["wrong_visible"])]
-    for r in bad[:20]:
-        lines.append(f"  - {r['map']} {r['mode']} at ({r['truth'][0]:.2f}, {r['truth'][1]:.2f}, {r['truth'][2]:.2f}): "
-                     f"{r['status']}, error {1000 * r['err_h']:.0f} mm / {math.degrees(r['err_phi']):.2f} deg, PL "
-                     f"{r['hpl']:.3f} m / {math.degrees(r['vpl']):.2f} deg, clutter {r['clutter']}, wrong {r['wrong']}")
+             f"{n_cal}.", *cases(cal["rows"])]
     return "\n".join(lines)
+
+
+def cases(rows: Sequence[Dict], limit: int = 20) -> List[str]:
+    """The scenes worth a look: misleading, a fix beyond its covariance, ok over 50 mm not behind
+    a hidden wall, or a wrong identification of a wall its camera saw."""
+    bad = [r for r in rows if r["misleading"] or r["ok_beyond_cov"] or (r["ok_gt"] and not r["hidden_wall"])
+           or any(v >= HIDDEN_SHARE for v in r["wrong_visible"])]
+    out = [f"- Scenes worth a look ({min(len(bad), limit)} of {len(bad)}):"] if bad else []
+    for r in bad[:limit]:
+        out.append(f"  - {r['map']} {r['mode']} at ({r['truth'][0]:.2f}, {r['truth'][1]:.2f}, {r['truth'][2]:.2f}): "
+                   f"{r['status']}, error {1000 * r['err_h']:.0f} mm / {math.degrees(r['err_phi']):.2f} deg, PL "
+                   f"{r['hpl']:.3f} m / {math.degrees(r['vpl']):.2f} deg, clutter {r['clutter']}, wrong {r['wrong']}")
+    return out
 
 
 def robot_risk() -> float:
