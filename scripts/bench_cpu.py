@@ -1149,7 +1149,8 @@ def report_localizer(r: Dict[str, Any], m_here: Dict[str, float]) -> List[str]:
     lines.append("| **total, no hooks (median / p95)** | "
                  + " | ".join(f"**{_f(c['ms'])}** / {_f(c['p95'])}" for c in r["cases"]) + " |")
     lines.append("| Nano estimate, no hooks (x5 / x8) | " + " | ".join(nano(c["ms"], m) for c in r["cases"]) + " |")
-    lines.append("| passes (mean), full fixes (ok or unprotected) | " + " | ".join(f"{c['passes']:.2f}, {c['ok']}" for c in r["cases"]) + " |")
+    lines.append("| passes (mean), full fixes (ok or unprotected) | "
+                 + " | ".join(f"{c['passes']:.2f}, {c['ok']}" for c in r["cases"]) + " |")
     lines.append("")
     if r["missing_hooks"]:
         lines.append("Hooks not found (the localizer changed; their time is in the step that calls them): "
