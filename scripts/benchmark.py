@@ -74,12 +74,18 @@ def main() -> int:
     ap.add_argument("--only", nargs="*", help="section module names to run; with an existing --out, the other "
                                               "sections are kept as they are, each with the commit it was run at")
     ap.add_argument("--out", default=str(ROOT / "BENCHMARKS.md"))
+    ap.add_argument("--merge", nargs="+", metavar="FILE", help="take the sections found in these files (written by "
+                                                                "this script, stamps and all) into --out; runs only "
+                                                                "the --only sections, none without it")
     args = ap.parse_args()
     unknown = [n for n in (args.only or []) if n not in SECTIONS]
     if unknown:
         ap.error(f"unknown section(s) {', '.join(unknown)} (choose from {', '.join(SECTIONS)})")
     commit = git_describe()
-    kept = split_sections(Path(args.out).read_text()) if args.only and Path(args.out).exists() else {}
+    partial = bool(args.only) or bool(args.merge)
+    kept = split_sections(Path(args.out).read_text()) if partial and Path(args.out).exists() else {}
+    for extra in args.merge or []:
+        kept.update(split_sections(Path(extra).read_text()))
     header = [
         "# Benchmarks",
         "",
@@ -92,13 +98,19 @@ def main() -> int:
         f"numpy {__import__('numpy').__version__}, OpenCV {__import__('cv2').__version__}; BLAS threads pinned to 1",
         "",
     ]
-    body = []
-    run = args.only or SECTIONS
-    for name in SECTIONS:
-        if name not in run:
-            if name in kept:
-                body += [kept[name], ""]
-            continue
+    run = args.only or ([] if args.merge else SECTIONS)
+    done: Dict[str, str] = {}
+
+    def write() -> None:
+        # Every section this run has not (yet) redone stays as it was: a run cut short loses nothing.
+        body = []
+        for name in SECTIONS:
+            text = done.get(name, kept.get(name))
+            if text is not None:
+                body += [text, ""]
+        Path(args.out).write_text("\n".join(header + body) + "\n")
+
+    for name in run:
         t0 = time.perf_counter()
         print(f"running {name} ...", file=sys.stderr, flush=True)
         try:
@@ -108,10 +120,9 @@ def main() -> int:
             text = f"## {name}\n\n_not run: {e}_"
         stamp = (f"_{name}: {time.perf_counter() - t0:.0f} s, commit {commit}, "
                  f"{'quick' if args.quick else 'full'}, {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}_")
-        body += [SECTION_START.format(name=name), text, "", stamp, SECTION_END.format(name=name), ""]
-        # Written after every section: a run cut short keeps what it measured.
-        Path(args.out).write_text("\n".join(header + body) + "\n")
-    Path(args.out).write_text("\n".join(header + body) + "\n")
+        done[name] = "\n".join([SECTION_START.format(name=name), text, "", stamp, SECTION_END.format(name=name)])
+        write()
+    write()
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
 
