@@ -54,6 +54,18 @@ def integrate_twist(x: float, y: float, phi: float, vx: float, vy: float, wz: fl
     return x + c * dx_body - s * dy_body, y + s * dx_body + c * dy_body, wrap_angle(phi + wz * dt)
 
 
+def compose_se2(a: Tuple[float, float, float], b: Tuple[float, float, float]) -> Tuple[float, float, float]:
+    """a o b on SE(2): pose b given in frame a, expressed where a is given."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], float(wrap_angle(a[2] + b[2])))
+
+
+def invert_se2(a: Tuple[float, float, float]) -> Tuple[float, float, float]:
+    """a^-1 on SE(2)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return (-(c * a[0] + s * a[1]), s * a[0] - c * a[1], float(wrap_angle(-a[2])))
+
+
 def rot_z(yaw: float) -> np.ndarray:
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -26,6 +26,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from robot.base.errors import RobotError
+from robot.base.geometry import integrate_twist
 from robot.base.samples import WheelOdometry
 from robot.config import RobotConfig
 from robot.control.health import HealthSupervisor
@@ -34,7 +35,7 @@ from robot.control.odometry import OdometryFeed
 from robot.control.path_file import PathPlan
 from robot.control.protective_stop import CLEAR, DISABLED, ProtectiveStop, SafetyDecision
 from robot.control.recovery import RecoverySupervisor
-from robot.control.trajectory import AxisLimiter, Command, TrajectoryController, _profile
+from robot.control.trajectory import AxisLimiter, Command, TrajectoryController, approach_speed
 from robot.fusion.calibration_filter import CalibrationFilter
 from robot.fusion.ekf import PoseFilter
 from robot.fusion.quality import LOCALIZED, LOST, FusedProtection, QualityMonitor, QualityReport
@@ -218,13 +219,8 @@ class ControllerCore:
         if not self.filter.initialized:  # else on_odometry sets them from the filter's inputs
             self._odom_speed, self._odom_turn = math.hypot(vx, vy), wz
         if self.recovery.in_sequence:
-            # The body twist over the sample, integrated along its arc (midpoint heading).
-            x, y, phi = self._turn_rel
-            h = phi + 0.5 * wz * dt
-            c, sn = math.cos(h), math.sin(h)
-            phi = math.atan2(math.sin(phi + wz * dt), math.cos(phi + wz * dt))
-            self._turn_rel = (x + (c * vx - sn * vy) * dt, y + (sn * vx + c * vy) * dt, phi)
-            self._turn_yaw += wz * dt
+            self._turn_rel = integrate_twist(*self._turn_rel, vx, vy, wz, dt)
+            self._turn_yaw += wz * dt  # unwrapped: the turn's goal may pass +-pi
 
     def recovery_view_pose(self) -> Tuple[float, float, float]:
         """The robot's pose now in the robot frame of the first view of this relocalization (odometry)."""
@@ -528,7 +524,7 @@ class ControllerCore:
                     lim.reset()  # the board has stopped the wheels: nothing to brake
         remaining = rec.turn_goal - self._turn_yaw
         if rec.turning:
-            target = _profile(remaining, lim.max_speed, 0.5 * c.max_yaw_accel, TURN_KP)
+            target = approach_speed(remaining, lim.max_speed, 0.5 * c.max_yaw_accel, TURN_KP)
         else:
             target = 0.0
         wz = lim.step(target, dt)

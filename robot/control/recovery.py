@@ -36,6 +36,7 @@ import math
 from dataclasses import dataclass, field
 from typing import List, Optional, Sequence, Tuple, TypeVar
 
+from robot.base.geometry import compose_se2, invert_se2
 from robot.config.recovery import RecoveryConfig
 
 T = TypeVar("T")
@@ -54,17 +55,6 @@ _TURN_EPS = 1e-6  # rad: a view exactly at max_turn_deg is still taken
 Pose = Tuple[float, float, float]
 
 
-def _compose(a: Pose, b: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    phi = a[2] + b[2]
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], math.atan2(math.sin(phi), math.cos(phi)))
-
-
-def _inverse(a: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (-(c * a[0] + s * a[1]), s * a[0] - c * a[1], -a[2])
-
-
 def views_from_latest(views: Sequence[Tuple[T, Pose]]) -> Tuple[T, List[Tuple[T, Pose]]]:
     """The views of a sequence, each given with its odometry pose in the first view's robot frame,
     re-based on the latest: (its frames, [(frames, pose relative to it)] for the earlier ones).
@@ -72,8 +62,8 @@ def views_from_latest(views: Sequence[Tuple[T, Pose]]) -> Tuple[T, List[Tuple[T,
     The relocalizer answers for its first view and refines on it first, so giving it the latest
     puts the hypotheses where the robot stands now, with the normal localizer's covariance there."""
     frames, here = views[-1]
-    back = _inverse(here)
-    return frames, [(f, _compose(back, rel)) for f, rel in views[:-1]]
+    back = invert_se2(here)
+    return frames, [(f, compose_se2(back, rel)) for f, rel in views[:-1]]
 
 
 @dataclass

@@ -104,7 +104,7 @@ def _clip_norm(x: float, y: float, limit: float) -> Tuple[float, float]:
     return x * limit / n, y * limit / n
 
 
-def _profile(error: float, cruise: float, brake_accel: float, kp: float) -> float:
+def approach_speed(error: float, cruise: float, brake_accel: float, kp: float) -> float:
     """Signed speed towards zero error: cruise, then braking distance, then proportional."""
     d = abs(error)
     return math.copysign(min(cruise, math.sqrt(2.0 * brake_accel * d), kp * d), error)
@@ -287,16 +287,16 @@ class TrajectoryController:
             tx, ty = lx / length, ly / length
             along = ex * tx + ey * ty
             cx, cy = ex - along * tx, ey - along * ty  # from the robot to the line
-            v_along = _profile(along, cruise, brake, cfg.kp_position)
+            v_along = approach_speed(along, cruise, brake, cfg.kp_position)
             vcx, vcy = _clip_norm(cfg.kp_cross_track * cx, cfg.kp_cross_track * cy, cruise)
             gx, gy = v_along * tx + vcx, v_along * ty + vcy
         else:
             d = math.hypot(ex, ey)
-            speed = abs(_profile(d, cruise, brake, cfg.kp_position))
+            speed = abs(approach_speed(d, cruise, brake, cfg.kp_position))
             gx, gy = (ex / d * speed, ey / d * speed) if d > 0.0 else (0.0, 0.0)
         gx, gy = _clip_norm(gx, gy, cruise)
         c, s = math.cos(phi), math.sin(phi)
         vx, vy = c * gx + s * gy, -s * gx + c * gy  # G -> R
         e_phi = wrap_angle(self._heading_goal - phi)
-        wz = _profile(e_phi, cfg.max_yaw_rate * scale, cfg.brake_fraction * cfg.max_yaw_accel, cfg.kp_heading)
+        wz = approach_speed(e_phi, cfg.max_yaw_rate * scale, cfg.brake_fraction * cfg.max_yaw_accel, cfg.kp_heading)
         return vx, vy, wz

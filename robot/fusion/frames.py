@@ -23,7 +23,14 @@ from typing import Callable, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from robot.base.geometry import R_BODY_OPTICAL, integrate_twist, make_transform, rpy_to_matrix, wrap_angle
+from robot.base.geometry import (
+    R_BODY_OPTICAL,
+    compose_se2,
+    integrate_twist,
+    invert_se2,
+    make_transform,
+    rpy_to_matrix,
+)
 from robot.base.samples import WheelOdometry
 from robot.config import CameraConfig
 
@@ -49,16 +56,8 @@ def camera_optical_frame(camera: str) -> str:
     return f"{camera}_optical_frame"
 
 
-def compose(a: Pose2, b: Pose2) -> Pose2:
-    """T_a * T_b on SE(2)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], wrap_angle(a[2] + b[2]))
-
-
-def invert(a: Pose2) -> Pose2:
-    """T_a^-1 on SE(2)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (-c * a[0] - s * a[1], s * a[0] - c * a[1], wrap_angle(-a[2]))
+compose = compose_se2  # T_a * T_b on SE(2)
+invert = invert_se2  # T_a^-1 on SE(2)
 
 
 class OdomFrame:

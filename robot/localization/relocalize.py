@@ -42,7 +42,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from robot.base.errors import InputError
-from robot.base.geometry import pose_to_T_ground_robot, wrap_angle
+from robot.base.geometry import compose_se2, invert_se2, pose_to_T_ground_robot, wrap_angle
 from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, RobotConfig
 from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
@@ -127,17 +127,6 @@ class RelocalizationResult:
 
 Pose = Tuple[float, float, float]
 View = Tuple[Sequence[DepthFrame], Pose]  # frames taken together, and that robot pose in view 0's robot frame
-
-
-def compose(a: Pose, b: Pose) -> Pose:
-    """a o b on SE(2): pose b given in frame a, expressed where a is given."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], float(wrap_angle(a[2] + b[2])))
-
-
-def inverse(a: Pose) -> Pose:
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (-(c * a[0] + s * a[1]), s * a[0] - c * a[1], float(wrap_angle(-a[2])))
 
 
 def _wall_in_frame0(w: ObservedWall, rel: Pose) -> ObservedWall:
@@ -438,7 +427,7 @@ class _Scorer:
         for cam, grid, z, valid, rel, view in self.items:
             if rels is not None:
                 rel = rels[view]
-            T_gc = pose_to_T_ground_robot(*compose(pose, rel)) @ cam.T_robot_camera
+            T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
             cands = self.index.in_view(T_gc, grid.frustum, self.max_range)
             views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
@@ -573,7 +562,7 @@ class Relocalizer:
         hyps_out.sort(key=lambda h: -h.score)
         # Each further view brings its own model error (its odometry pose, its clutter): over many
         # views a twin of a symmetric building drifts tens of nats from the right pose, so the
-        # margin is per view, and a multi-view answer must be one the localizer refined.
+        # margin grows with the views.
         margin = UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1)
         close = [h for h in hyps_out if h.score >= hyps_out[0].score - margin]
         best = hyps_out[0]
@@ -604,16 +593,16 @@ class Relocalizer:
         cov0 = coarse_covariance(0.05, math.radians(3.0))
         res = None
         for fs, rel in views:
-            res = self.localizer.localize(fs, compose(pose, rel), cov0)
+            res = self.localizer.localize(fs, compose_se2(pose, rel), cov0)
             if res.status in FIX_STATUSES:
                 break
-        back = inverse(rel)
+        back = invert_se2(rel)
         s0, support0, planes0 = scorer.score(pose)
         through0 = scorer.last_see_through
         unrefined = Hypothesis(pose[0], pose[1], pose[2], cov0, s0, support0, planes0, False, res.status, through0)
         if res.status == "no_planes":
             return unrefined
-        p = compose((res.x, res.y, float(wrap_angle(res.phi))), back)
+        p = compose_se2((res.x, res.y, float(wrap_angle(res.phi))), back)
         rels = self._refine_views(views, p) if len(views) > 1 else None
         s, support, planes = scorer.score(p, rels=rels)
         if s0 > s + REFINE_SLACK:  # the refinement went astray (a wrong wall): keep the unrefined pose
@@ -628,12 +617,12 @@ class Relocalizer:
         """Each view's pose relative to the first, re-estimated by the localizer from ``pose`` and the
         odometry; the odometry's where the localizer finds no fix near it."""
         cov = coarse_covariance(VIEW_POS_STD, VIEW_PHI_STD)
-        back = inverse(pose)
+        back = invert_se2(pose)
         out: List[Pose] = [views[0][1]]
         for fs, rel in views[1:]:
-            res = self.localizer.localize(fs, compose(pose, rel), cov)
+            res = self.localizer.localize(fs, compose_se2(pose, rel), cov)
             if res.status in FIX_STATUSES:
-                r = compose(back, (res.x, res.y, float(wrap_angle(res.phi))))
+                r = compose_se2(back, (res.x, res.y, float(wrap_angle(res.phi))))
                 if (math.hypot(r[0] - rel[0], r[1] - rel[1]) <= VIEW_MAX_SHIFT
                         and abs(float(wrap_angle(r[2] - rel[2]))) <= VIEW_MAX_TURN):
                     out.append(r)
