@@ -452,3 +452,21 @@ def test_past_the_newest_odometry_the_held_motion_is_uncertain():
     _, _, _, P = f.predicted(0.01 + FilterConfig().hold)
     held = 0.2 * FilterConfig().hold
     assert math.sqrt(P[0, 0]) >= 0.5 * held and math.sqrt(P[1, 1]) < 0.5 * math.sqrt(P[0, 0])
+
+
+def test_the_float_motion_the_filter_replays_equals_the_numpy_reference():
+    """``_motion`` (plain floats, on the replay path) against ``body_increment`` and D Q D^T."""
+    from robot.fusion.ekf import _motion
+
+    cfg = FilterConfig()
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        tw = rng.normal(0.0, [0.3, 0.3, 1.0])
+        dt = float(rng.uniform(1e-3, 0.2))
+        A = rng.normal(size=(3, 3))
+        Q = A @ A.T * 1e-4
+        m = _motion(*tw, Q.tolist(), dt, 1.7, cfg)
+        inc, D = body_increment(tw, dt)
+        np.testing.assert_allclose(m[:3], inc, rtol=1e-12, atol=1e-15)
+        C = 1.7 * D @ Q @ D.T
+        np.testing.assert_allclose(m[3:9], [C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2]], rtol=1e-9, atol=1e-18)
