@@ -14,6 +14,7 @@ localizer.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import MISSING, dataclass, field
 from typing import Optional, Tuple
@@ -51,10 +52,14 @@ class CameraConfig:
     def __post_init__(self):
         check_fields(self, f"camera '{self.name}'")
 
-    @property
+    @functools.cached_property
     def T_robot_camera(self) -> np.ndarray:
-        """T_RC: optical frame (z forward, x right, y down) to robot frame."""
-        return mount_to_T_robot_camera(self.mount_xyz, tuple(math.radians(a) for a in self.mount_rpy_deg))
+        """T_RC: optical frame (z forward, x right, y down) to robot frame. Built once per camera
+        (the config is frozen; a recalibrated camera is a new object) and read-only: the per-frame
+        path reads it many times."""
+        T = mount_to_T_robot_camera(self.mount_xyz, tuple(math.radians(a) for a in self.mount_rpy_deg))
+        T.flags.writeable = False
+        return T
 
     def intrinsics_from_fov(self) -> np.ndarray:
         """Pinhole K from the field of view, principal point at the image centre.

@@ -204,7 +204,6 @@ class Localizer:
         self.last_roi_labels: Dict[str, np.ndarray] = {}
         self._geometry: Dict[Tuple, _FrameGeometry] = {}
         self._extent: Dict[int, Tuple[float, float]] = {}
-        self._mounts: Dict[int, Tuple[CameraConfig, np.ndarray]] = {}
 
     def localize(self, frames: Sequence[DepthFrame], coarse: Sequence[float],
                  coarse_cov: Optional[np.ndarray] = None, method: str = "joint") -> LocalizationResult:
@@ -402,18 +401,6 @@ class Localizer:
                                                        np.array(cols, float), np.array(rows, float))
         return geo
 
-    def _T_robot_camera(self, cam: CameraConfig) -> np.ndarray:
-        """cam.T_robot_camera, kept per camera object: the property builds three rotations on every
-        access. Keyed by identity (a recalibrated camera is a new object), read-only."""
-        hit = self._mounts.get(id(cam))
-        if hit is None or hit[0] is not cam:
-            if len(self._mounts) > 32:  # cameras replaced over and over (recalibrations): forget the old ones
-                self._mounts.clear()
-            T = cam.T_robot_camera
-            T.flags.writeable = False
-            hit = self._mounts[id(cam)] = (cam, T)
-        return hit[1]
-
     def _fit_params(self, geo: _FrameGeometry, depth_unit: float, cov: np.ndarray, n_ground: np.ndarray,
                     up_camera: Optional[np.ndarray] = None, d_pred: float = 0.0,
                     tolerance: Optional[float] = None) -> FitParams:
@@ -482,7 +469,7 @@ class Localizer:
         h, w = frame.depth.shape
         geo = self.frame_geometry(cam, frame.K, w, h)
         stride = geo.grid.stride
-        T_robot_camera = self._T_robot_camera(cam)
+        T_robot_camera = cam.T_robot_camera
         T_ground_robot = pose_to_T_ground_robot(*pose)
         T_ground_camera = T_ground_robot @ T_robot_camera
         candidates = self.index.candidates(T_ground_camera[:3, 3], p.max_range)
