@@ -551,6 +551,14 @@ def test_commands_taking_yaml_files(scratch, no_motion, name):
     check()
 
 
+def test_a_key_holding_a_line_break_is_quoted_on_one_line(scratch, no_motion):
+    """Found by the long fuzz run: an unknown key "\\r" split the error into two lines."""
+    f = write(scratch, "map.yaml", '"\\r":\n0:\nplanes:')
+    rc, err = run_cli(["visible", "--map", str(f), "--pose", "0.5", "0.5", "0"])
+    assert rc == 2 and "unknown key(s): '\\r', 0" in err, err
+    assert_cli_contract(rc, err, no_motion)
+
+
 @FUZZ_CLI
 @given(data=st.one_of(snapshot_bytes(), st.binary(max_size=512)))
 def test_localize_command(scratch, no_motion, data):

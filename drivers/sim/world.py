@@ -38,6 +38,9 @@ class WorldSettings:
     site: int = 0  # random construction-site items (drivers.sim.clutter) the map does not know
     as_built: bool = False  # walls rendered as built (offsets, bows, out of plumb), not as in the map
     obstacles: Tuple[Any, ...] = ()  # solids placed on purpose (a person in the path), beside the random ones
+    # (x, y) points the random site items keep 0.5 m clear of, beside the start (a planned path's
+    # course, so that a run through a cluttered building meets nothing that should stop it)
+    keep_clear: Tuple[Tuple[float, float], ...] = ()
     motor_tau: float = 0.03  # s, first-order motor response
     board_substep: float = 0.005  # s per physics step (the firmware runs 1 ms; 5 ms is exact enough here and 5x faster)
     # How the robot differs from its config (what calibration has to find; docs/calibration.md):
@@ -47,7 +50,8 @@ class WorldSettings:
 
 
 def sample_world(plane_map: PlaneMap, start: Sequence[float], seed: int, radius_error_std: float,
-                 clutter: int, site: int = 0, as_built: bool = False) -> Tuple[Tuple[float, ...], SimScene]:
+                 clutter: int, site: int = 0, as_built: bool = False,
+                 keep_clear: Sequence[Tuple[float, float]] = ()) -> Tuple[Tuple[float, ...], SimScene]:
     """The seeded parts of a world: each wheel's radius error and the scene (with random clutter
     and site items kept clear of the start, and the walls as built if asked). Shared by the
     simulated-clock world and the real-time rig, so a seed means the same robot and room in both."""
@@ -56,7 +60,7 @@ def sample_world(plane_map: PlaneMap, start: Sequence[float], seed: int, radius_
     items = list(random_clutter(plane_map, clutter, rng, keep_clear=[tuple(start[:2])])) if clutter else []
     # Drawn after the boxes, so adding site items or as-built walls keeps a seed's wheels and boxes.
     if site:
-        items += random_site_clutter(plane_map, rng, site, keep_clear=[tuple(start[:2])])
+        items += random_site_clutter(plane_map, rng, site, keep_clear=[tuple(start[:2]), *keep_clear])
     walls = as_built_walls(plane_map, rng) if as_built else None
     return radius_error, SimScene(plane_map, clutter=items, walls=walls)
 
@@ -69,7 +73,8 @@ class SimWorld:
         self.robot = robot
         self.settings = settings
         radius_error, self.scene = sample_world(plane_map, start, settings.seed, settings.radius_error_std,
-                                                settings.clutter, settings.site, settings.as_built)
+                                                settings.clutter, settings.site, settings.as_built,
+                                                settings.keep_clear)
         common = 1.0 + float(settings.wheel_radius_error)
         radius_error = tuple(common * (1.0 + e) - 1.0 for e in radius_error)
         # The cameras render from their true mounts; the config (self.robot) keeps what the controller believes.

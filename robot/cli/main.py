@@ -81,7 +81,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     except RobotError as e:
         failed = True
         note = held.summary() if held is not None else ""
-        sys.stderr.write(f"{journal_prefix(logging.ERROR)}robotctl {args.command}: error: {e}{note}\n")
+        # One line whatever the message quotes from a hostile file (the journal and scripts read lines).
+        text = f"{e}{note}".replace("\r", "\\r").replace("\n", "\\n")
+        sys.stderr.write(f"{journal_prefix(logging.ERROR)}robotctl {args.command}: error: {text}\n")
         return 2
     except KeyboardInterrupt:
         sys.stderr.write(f"robotctl {args.command}: interrupted\n")

@@ -199,7 +199,8 @@ class Section:
     def done(self):
         unknown = sorted(set(map(str, self._data)) - set(map(str, self._seen)))
         if unknown:
-            shown = ", ".join(excerpt(k, 40) if len(k) > 40 else k for k in unknown[:10])
+            # A key is quoted when it is long or holds a line break or other control character.
+            shown = ", ".join(k if len(k) <= 40 and k.isprintable() else excerpt(k, 40) for k in unknown[:10])
             more = f" and {len(unknown) - 10} more" if len(unknown) > 10 else ""
             self.fail(f"unknown key(s): {shown}{more}")
 
