@@ -284,7 +284,7 @@ class FleetRobot:
     def __init__(self, rig, master):
         self.rig = rig
         self.master = master
-        self.ticks = []  # (t, vx, vy, wz) commanded
+        self.ticks = []  # (t, vx, vy, wz, faults so far, sent, reason) per control tick
 
     @property
     def truth(self):
@@ -310,7 +310,9 @@ def robot(broker, master):
 
     def on_tick(app, t):
         c = app.last_output.command
-        holder["r"].ticks.append((t, c.vx, c.vy, c.wz))
+        out = app.last_output
+        holder["r"].ticks.append((t, c.vx, c.vy, c.wz, app.core.counters.get("faults", 0), out.wheels is not None,
+                                  out.reason))
         del holder["r"].ticks[:-20000]
 
     with sim_rig(cfg, ARENA, START, RealtimeSimSettings(fps=10, decimation=4), opts, initial_pose=START,
@@ -393,9 +395,14 @@ def test_pause_and_a_cancel_mid_edge_stop_the_robot_within_its_limits(robot, mas
     assert math.hypot(robot.truth[0] - far[0], robot.truth[1] - far[1]) > 0.02  # stopped mid-edge
     a = ROBOT.control.max_accel
     ticks = robot.ticks[n - 1:]
-    for (t0, vx0, vy0, _), (t1, vx1, vy1, _) in zip(ticks, ticks[1:]):
+    for (t0, vx0, vy0, _, f0, sent0, _), (t1, vx1, vy1, _, f1, sent1, why) in zip(ticks, ticks[1:]):
+        if f1 != f0 or not (sent0 and sent1):
+            # A fault the controller saw (on a starved machine: an odometry gap, a missed deadline)
+            # stops the robot at once by design (tests/test_fault_fusion.py), and a withheld command
+            # is no command: neither is the cancel's braking.
+            continue
         dt = min(t1 - t0, ROBOT.control.max_dt)
-        assert abs(vx1 - vx0) <= a * dt + 1e-9 and abs(vy1 - vy0) <= a * dt + 1e-9  # braked, never cut
+        assert abs(vx1 - vx0) <= a * dt + 1e-9 and abs(vy1 - vy0) <= a * dt + 1e-9, (t1, vx0, vx1, vy0, vy1, why)
     mark = master.mark()
     master.action("cancelOrder", "cancel-2")
     again = master.wait(lambda s: _action(s, "cancel-2"), "the second cancel answered", since=mark)

@@ -164,3 +164,24 @@ def test_a_stopped_turn_keeps_the_verdict_and_a_unique_one_confirms():
     off.on_verdict(0.1, "ambiguous", [{"x": 0.0}, {"x": 1.0}])
     assert off.state == AMBIGUOUS
 
+
+
+def test_one_disagreeing_wall_is_no_kidnap_but_two_are():
+    """A panel standing in front of the only wall a camera fits is rejected by the gate view after
+    view (measured in the cluttered FZK house: the robot stopped and relocalized for nothing); a
+    kidnap is when every wall disagrees, and it takes two to say so."""
+    cfg = RecoveryConfig()
+    sup = RecoverySupervisor(cfg)
+    assert sup.state == TRACKING
+    t = 0.0
+    for _ in range(40):  # 8 s of one fitted wall, always rejected
+        t += 0.2
+        sup.on_fusion(t, 1, 0)
+    assert sup.state == TRACKING
+    sup.on_fusion(t + 0.2, 3, 1)  # an accepted view clears any run
+    for k in range(cfg.kidnap_frames + 5):
+        t += 0.2
+        sup.on_fusion(t, 2, 0)
+        if k % 2:
+            sup.on_fusion(t + 0.1, 1, 0)  # single-wall views in between neither count nor clear
+    assert sup.state == RELOCALIZING and "kidnapped" in sup.reason

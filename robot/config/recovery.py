@@ -16,6 +16,8 @@ class RecoveryConfig:
     lost_after: float = number(5.0, 0.1, 120.0, "s", "of quality 'lost' before relocalizing")
     kidnap_frames: int = integer(4, 1, 100, "", "views in a row with every fitted wall rejected ...")
     kidnap_time: float = number(1.0, 0.1, 120.0, "s", "... for at least this long: the robot was moved")
+    kidnap_min_walls: int = integer(2, 1, 10, "", "fitted walls a view needs to count toward a kidnap (one wall "
+                                    "alone may be a panel standing in front of it)")
     check_frames: int = integer(6, 1, 100, "", "views that may disagree with a saved or operator pose before "
                                 "relocalizing")
     confirm_updates: int = integer(3, 1, 100, "", "accepted plane updates after a relocalization before moving")

@@ -26,8 +26,10 @@ States:
 
 Triggers into ``relocalizing``: no pose at start-up; quality ``lost`` for ``lost_after`` s; a
 saved pose the cameras contradict; a *kidnap*: for ``kidnap_time`` s (and at least
-``kidnap_frames`` localizations) the localizer fitted walls but the fusion gate rejected every
-one (odometry and every wall disagree).
+``kidnap_frames`` localizations) the localizer fitted at least ``kidnap_min_walls`` walls and
+the fusion gate rejected every one (odometry and every wall disagree). A view with fewer fitted
+walls, all rejected, neither counts nor clears the run: one wall alone is as likely a panel or a
+stack of boards standing in front of it as a moved robot.
 """
 
 from __future__ import annotations
@@ -127,6 +129,8 @@ class RecoverySupervisor:
                     self._enter(RELOCALIZING, t, "the relocalized pose was not confirmed")
             return
         if self.state != TRACKING:
+            return
+        if accepted == 0 and 0 < fitted < c.kidnap_min_walls:
             return
         if fitted >= 1 and accepted == 0:
             self._rejected_run.append(t)

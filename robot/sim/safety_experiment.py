@@ -6,21 +6,25 @@ is sent 4 m straight ahead at ``speed``; a person (an elliptic cylinder 0.5 x 0.
 ends after the simulated time a free run would need. What it measures: the smallest clearance
 between the robot's footprint and the person over the run (the robot must never touch them), and
 where it came to rest.
+
+``cluttered_run`` is the other half: a planned path through a building full of site items kept
+clear of the path, where every tick held in the stop zone is a false stop.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
 
 from drivers.sim.building import room_grid_map
 from drivers.sim.clutter import person
-from drivers.sim.world import WorldSettings
+from drivers.sim.world import WorldSettings, sample_world
 from robot.config import RobotConfig
-from robot.control.path_file import parse_path
+from robot.control.path_file import PathPlan, parse_path
+from robot.maps.plane_map import PlaneMap
 from robot.sim.runner import RunSettings, run_path
 
 ROOM = 8.0  # m, inside
@@ -90,3 +94,42 @@ def obstacle_runs(robot: RobotConfig, seeds: List[int], speed: float = 0.3, dist
 def stop_ticks(counters: Optional[dict]) -> int:
     """Control ticks the protective stop held the robot in its stop zone, from a run's counters."""
     return int((counters or {}).get("safety_stop", 0))
+
+
+def path_course(plan: PathPlan, step: float = 0.1) -> List[Tuple[float, float]]:
+    """Points every ``step`` metres along a path's straight legs, start included: what random
+    clutter is kept clear of when a run must meet nothing in its way (false stops)."""
+    if plan.start is None:
+        raise ValueError(f"{plan.source}: the course needs the path's start pose")
+    pts = [(plan.start.x, plan.start.y)] + [(w.x, w.y) for w in plan.waypoints]
+    course = [pts[0]]
+    for (x0, y0), (x1, y1) in zip(pts, pts[1:]):
+        n = max(1, int(math.ceil(math.hypot(x1 - x0, y1 - y0) / step)))
+        course += [(x0 + (x1 - x0) * k / n, y0 + (y1 - y0) * k / n) for k in range(1, n + 1)]
+    return course
+
+
+@dataclass(frozen=True)
+class ClutteredRun:
+    seed: int
+    finished: bool
+    reason: str  # why a run did not finish (the runner's words), "" when it did
+    stop_ticks: int  # control ticks held in the protective stop zone: each is a false stop here
+    limited_ticks: int  # ticks slowed or limited for any reason (slow-down zone, blind creep)
+    items: List[str]  # the kinds of site items placed
+
+
+def cluttered_run(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, seed: int, items: int = 10,
+                  clearance_step: float = 0.1) -> ClutteredRun:
+    """One run of ``plan`` with vision through a building with ``items`` random site items
+    (people, pallets, shelving, boards and panels at walls, doors in openings) kept 0.5 m clear of
+    the path's course, and its walls as built: nothing stands in the way, so any tick held in the
+    stop zone is a false stop."""
+    world = WorldSettings(seed=seed, site=items, as_built=True, keep_clear=tuple(path_course(plan, clearance_step)))
+    start = (plan.start.x, plan.start.y, plan.start.heading) if plan.start is not None else (0.0, 0.0, 0.0)
+    # The same seed draws the same scene as the run's world (sample_world is what SimWorld calls).
+    _, scene = sample_world(plane_map, start, seed, world.radius_error_std, world.clutter, world.site,
+                            world.as_built, world.keep_clear)
+    res = run_path(robot, plane_map, plan, RunSettings(vision=True, world=world))
+    return ClutteredRun(seed, res.finished, "" if res.finished else res.reason, stop_ticks(res.counters),
+                        int(res.counters.get("safety_limited", 0)), [getattr(c, "kind", "?") for c in scene.clutter])
