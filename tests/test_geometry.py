@@ -102,3 +102,51 @@ def test_plane_axes_keep_the_maps_winding():
                 x, y = poly @ a, poly @ b
                 areas.append(0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
             assert min(areas) > 0 and sum(areas) == pytest.approx(plane.area, rel=1e-9)
+
+
+def test_se2_jacobians_match_finite_differences():
+    from robot.base.geometry import compose_se2, compose_se2_jacobians, invert_se2, invert_se2_jacobian
+
+    rng = np.random.default_rng(3)
+    h = 1e-6
+    for _ in range(20):
+        a = tuple(rng.uniform(-3.0, 3.0, 3))
+        b = tuple(rng.uniform(-3.0, 3.0, 3))
+        Ja, Jb = compose_se2_jacobians(a, b)
+        Ji = invert_se2_jacobian(a)
+        for k in range(3):
+            d = np.zeros(3)
+            d[k] = h
+            num_a = (np.subtract(compose_se2(tuple(a + d), b), compose_se2(tuple(a - d), b))) / (2 * h)
+            num_b = (np.subtract(compose_se2(a, tuple(b + d)), compose_se2(a, tuple(b - d)))) / (2 * h)
+            num_i = (np.subtract(invert_se2(tuple(a + d)), invert_se2(tuple(a - d)))) / (2 * h)
+            for num in (num_a, num_b, num_i):
+                num[2] = (num[2] + np.pi / h) % (2 * np.pi / h) - np.pi / h  # a wrap inside the step
+            np.testing.assert_allclose(Ja[:, k], num_a, atol=1e-6)
+            np.testing.assert_allclose(Jb[:, k], num_b, atol=1e-6)
+            np.testing.assert_allclose(Ji[:, k], num_i, atol=1e-6)
+
+
+def test_a_relocalization_confirmed_from_a_later_view_carries_the_turns_odometry_error():
+    """Monte Carlo: the first view's pose is view k's fix composed with the inverse of the turn's
+    odometry; both are uncertain, and the reported covariance must cover both."""
+    from robot.base.geometry import compose_se2, invert_se2
+    from robot.localization.relocalize import VIEW_PHI_STD, VIEW_POS_STD, view_covariance
+
+    rng = np.random.default_rng(5)
+    pose_k, rel = (4.0, 2.0, 1.2), (0.01, -0.02, np.pi / 2)
+    cov_k = np.diag([0.003**2, 0.002**2, np.radians(0.2) ** 2])
+    cov = view_covariance(pose_k, cov_k, rel)
+    truth = compose_se2(pose_k, invert_se2(rel))
+    errs = []
+    for _ in range(20000):
+        pk = tuple(np.add(pose_k, rng.multivariate_normal(np.zeros(3), cov_k)))
+        r = tuple(np.add(rel, rng.normal(0.0, [VIEW_POS_STD, VIEW_POS_STD, VIEW_PHI_STD])))
+        e = np.subtract(compose_se2(pk, invert_se2(r)), truth)
+        e[2] = (e[2] + np.pi) % (2 * np.pi) - np.pi
+        errs.append(e)
+    errs = np.array(errs)
+    nees = np.einsum("ni,ij,nj->n", errs, np.linalg.inv(cov), errs)
+    assert 2.8 < nees.mean() < 3.2  # honest (the fix's own covariance alone gives hundreds)
+    assert np.sqrt(cov[0, 0]) > 0.015  # the turn's odometry dominates a 3 mm fix
+    np.testing.assert_allclose(view_covariance(pose_k, cov_k, (0.0, 0.0, 0.0)), cov_k)  # view 0: as it was

@@ -66,6 +66,20 @@ def invert_se2(a: Tuple[float, float, float]) -> Tuple[float, float, float]:
     return (-(c * a[0] + s * a[1]), s * a[0] - c * a[1], float(wrap_angle(-a[2])))
 
 
+def compose_se2_jacobians(a: Tuple[float, float, float], b: Tuple[float, float, float]) -> Tuple[np.ndarray, np.ndarray]:
+    """d(a o b)/da and d(a o b)/db, each 3x3 over (x, y, phi): to carry covariances through."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    Ja = np.array([[1.0, 0.0, -s * b[0] - c * b[1]], [0.0, 1.0, c * b[0] - s * b[1]], [0.0, 0.0, 1.0]])
+    Jb = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Ja, Jb
+
+
+def invert_se2_jacobian(a: Tuple[float, float, float]) -> np.ndarray:
+    """d(a^-1)/da, 3x3 over (x, y, phi)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    return np.array([[-c, -s, s * a[0] - c * a[1]], [s, -c, c * a[0] + s * a[1]], [0.0, 0.0, -1.0]])
+
+
 def rot_z(yaw: float) -> np.ndarray:
     c, s = math.cos(yaw), math.sin(yaw)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -42,7 +42,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 
 from robot.base.errors import InputError
-from robot.base.geometry import compose_se2, invert_se2, pose_to_T_ground_robot, wrap_angle
+from robot.base.geometry import compose_se2, compose_se2_jacobians, invert_se2, invert_se2_jacobian, pose_to_T_ground_robot, wrap_angle
 from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, RobotConfig
 from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
@@ -607,10 +607,7 @@ class Relocalizer:
         s, support, planes = scorer.score(p, rels=rels)
         if s0 > s + REFINE_SLACK:  # the refinement went astray (a wrong wall): keep the unrefined pose
             return unrefined
-        # The covariance moves with the composition: d(pose_k o back)/d(pose_k).
-        c, sn = math.cos(res.phi), math.sin(res.phi)
-        J = np.array([[1.0, 0.0, -sn * back[0] - c * back[1]], [0.0, 1.0, c * back[0] - sn * back[1]], [0.0, 0.0, 1.0]])
-        cov = J @ np.asarray(res.cov) @ J.T
+        cov = view_covariance((res.x, res.y, res.phi), np.asarray(res.cov), rel)
         return Hypothesis(p[0], p[1], p[2], cov, s, support, planes, True, res.status, scorer.last_see_through)
 
     def _refine_views(self, views: Sequence[View], pose: Pose) -> List[Pose]:
@@ -629,6 +626,19 @@ class Relocalizer:
                     continue
             out.append(rel)
         return out
+
+
+def view_covariance(pose_k: Pose, cov_k: np.ndarray, rel: Pose) -> np.ndarray:
+    """The covariance of the first view's pose, pose_k o rel^-1, from view k's fix (``cov_k``) and
+    the odometry's relative pose ``rel`` of view k, uncertain by VIEW_POS_STD and VIEW_PHI_STD: a
+    fix taken after part of a turn is only as good as the turn's odometry."""
+    back = invert_se2(rel)
+    Ja, Jb = compose_se2_jacobians(pose_k, back)
+    cov = Ja @ cov_k @ Ja.T
+    if any(abs(v) > 0.0 for v in rel):
+        J_rel = Jb @ invert_se2_jacobian(rel)
+        cov = cov + J_rel @ coarse_covariance(VIEW_POS_STD, VIEW_PHI_STD) @ J_rel.T
+    return cov
 
 
 def _label_edges(label: np.ndarray) -> np.ndarray:
