@@ -68,7 +68,7 @@ def run_one(name: str, loader_examples: int) -> Tuple[str, int, float, str, str]
     return name, n, seconds, result, (p.stdout[-4000:] + p.stderr[-2000:]) if result == "FAIL" else ""
 
 
-def section(loader_examples: int, only: Optional[str] = None) -> Tuple[str, bool]:
+def fuzz_section(loader_examples: int, only: Optional[str] = None) -> Tuple[str, bool]:
     rows: List[str] = []
     failed = False
     total_n, total_s = 0, 0.0
@@ -95,7 +95,7 @@ def section(loader_examples: int, only: Optional[str] = None) -> Tuple[str, bool
 
 
 def run(quick: bool = False) -> str:
-    return section(200 if quick else 10_000)[0]
+    return fuzz_section(200 if quick else 10_000)[0]
 
 
 def main(argv=None) -> int:
@@ -103,7 +103,7 @@ def main(argv=None) -> int:
     ap.add_argument("--examples", type=int, default=10_000, help="examples per loader (default: %(default)s)")
     ap.add_argument("-k", dest="only", help="only the tests whose name contains this")
     args = ap.parse_args(argv)
-    text, failed = section(args.examples, args.only)
+    text, failed = fuzz_section(args.examples, args.only)
     print(text)
     return 1 if failed else 0
 
