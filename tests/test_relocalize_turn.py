@@ -185,3 +185,27 @@ def test_one_disagreeing_wall_is_no_kidnap_but_two_are():
         if k % 2:
             sup.on_fusion(t + 0.1, 1, 0)  # single-wall views in between neither count nor clear
     assert sup.state == RELOCALIZING and "kidnapped" in sup.reason
+
+
+def test_walls_that_contradict_each_other_are_no_kidnap_but_depth_against_the_pose_is():
+    """Inconsistent views of a robot that is where it thinks (a panel in front of a wall makes
+    the walls disagree) kept the FZK tour stopped; depth that contradicts the pose is a kidnap."""
+    import numpy as np
+
+    from robot.control.core import ControllerCore
+    from robot.localization.localizer import LocalizationResult, PlaneReport
+
+    robot = load_robot_config("config/robot.yaml")
+    planes = [PlaneReport(pid, "front", 900, None, None, False, "fitted, but not used", roi_points=2000)
+              for pid in ("w001", "w002", "w015")]
+
+    def view(against: bool) -> LocalizationResult:
+        return LocalizationResult(8.6, 5.4, 0.29, np.eye(3), "inconsistent", [], planes,
+                                  integrity={"reason": "...", "depth_against_pose": against,
+                                             "evidence_against": [{"id": "w015", "camera": "front", "depth": "in_front"}]})
+
+    for against, expected in ((False, TRACKING), (True, RELOCALIZING)):
+        core = ControllerCore(robot, plane_map=load_plane_map("config/maps/fzk_haus_ground.yaml"))
+        for k in range(40):  # 8 s of such views
+            core._note_recovery(view(against), 0.2 * k, 0)
+        assert core.recovery.state == expected, (against, core.recovery.reason)

@@ -147,6 +147,30 @@ def test_axis_limiter_settles_exactly_without_overshoot():
     assert min(vs) >= -0.3 and vs[-1] == -0.3 and lim.a == 0.0
 
 
+def test_axis_limiter_never_passes_its_target_when_ticks_jitter():
+    """Real-time control ticks are 16-26 ms apart, not the nominal 20: braking to a hold must not
+    reverse the robot (found by the real-time kidnap test: -1.5 mm/s while relocalizing)."""
+    rng = np.random.default_rng(11)
+    for seed_v in (0.3, 0.05, 0.0167, -0.2):
+        lim = AxisLimiter(0.3, 0.5, 2.0)
+        for _ in range(300):  # reach the start speed
+            lim.step(seed_v, DT)
+        v0 = lim.v
+        prev = v0
+        for _ in range(400):
+            dt = float(rng.uniform(0.012, 0.03))
+            v = lim.step(0.0, dt)
+            assert v * v0 >= 0.0, (seed_v, v)  # never past zero
+            assert abs(v) <= abs(prev) + 1e-12  # braking only
+            assert abs(v - prev) <= 0.5 * dt + 1e-12  # within the acceleration limit
+            prev = v
+        assert v == 0.0 and lim.a == 0.0
+        for _ in range(400):  # and towards a steady target from below, jittered
+            v = lim.step(0.2, float(rng.uniform(0.012, 0.03)))
+            assert v <= 0.2
+        assert v == 0.2
+
+
 def straight_plan(dwell: float = 0.0) -> PathPlan:
     return PathPlan(waypoints=(Waypoint(x=1.0, y=0.0, heading=0.0, speed=0.3, tolerance=0.005, dwell=dwell),),
                     start=StartPose(0.0, 0.0, 0.0))

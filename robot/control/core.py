@@ -275,9 +275,14 @@ class ControllerCore:
 
     def _note_recovery(self, result: LocalizationResult, t_capture: float, accepted: int) -> None:
         """Tell the recovery supervisor how this view agreed with the pose. Predicted walls with a
-        large region of interest and no fit at all disagree as much as fits the gate rejects."""
+        large region of interest and no fit at all disagree as much as fits the gate rejects. Walls
+        that contradict one another (an inconsistent result the depth did not decide) say
+        nothing about the pose: a panel in front of one wall does that to a robot that is where it
+        thinks (measured in the cluttered FZK house, where it stopped the tour for nothing)."""
         fitted = len(result.measurements)
-        if fitted == 0:
+        if result.status == "inconsistent" and not (result.integrity or {}).get("depth_against_pose"):
+            fitted = 0
+        elif fitted == 0:
             big = sum(1 for r in result.planes if getattr(r, "roi_points", 0) >= self.robot.localizer.min_inliers)
             fitted = big if big >= 1 else 0
         self.recovery.on_fusion(t_capture, fitted, accepted)

@@ -74,9 +74,11 @@ class AxisLimiter:
         self.max_speed, self.max_accel, self.max_jerk = max_speed, max_accel, max_jerk
         self.v = 0.0
         self.a = 0.0
+        self._target = math.nan  # the last tick's target (a steady one is never passed)
 
     def reset(self) -> None:
         self.v = self.a = 0.0
+        self._target = math.nan
 
     def step(self, target: float, dt: float) -> float:
         h = self.max_jerk * dt  # largest change of acceleration in one tick
@@ -93,7 +95,17 @@ class AxisLimiter:
         a_wanted = math.copysign(min(self.max_accel, reachable), e)
         self.a += min(max(a_wanted - self.a, -h), h)
         # The clamp only ever trims rounding: the staircase already keeps |v| <= max_speed.
-        self.v = min(max(self.v + self.a * dt, -self.max_speed), self.max_speed)
+        v = min(max(self.v + self.a * dt, -self.max_speed), self.max_speed)
+        steady = target == self._target
+        self._target = target
+        if steady and (target - v) * e <= 0.0:
+            # The staircase assumes the next ticks as long as this one; a shorter one (real-time
+            # ticks jitter by milliseconds) carries the speed past the target, which for a robot
+            # braking to a hold means reversing. Land on it instead: a smaller step than the
+            # acceleration limit allows, at the end of the staircase where the acceleration left
+            # is a few jerk steps. (A target that moves may be crossed: that is tracking it.)
+            v, self.a = target, 0.0
+        self.v = v
         return self.v
 
 

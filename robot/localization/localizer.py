@@ -187,6 +187,7 @@ class _Verdict:
     cov_next: Optional[np.ndarray] = None
     roi_next: Optional[np.ndarray] = None
     checker: Optional[Checker] = None  # what solved it, for the final checks on the same walls
+    against_pose: bool = False  # inconsistent because the depth contradicts the pose, not the walls each other
 
 
 class Localizer:
@@ -333,7 +334,7 @@ class Localizer:
         names = ", ".join(f"{w.report.id} ({w.report.camera}, depth {'behind' if w.evidence == 'behind' else 'in front of'} it)"
                           for w in behind + front)
         return _Verdict(np.array(req.coarse), req.cov.copy(), "inconsistent", [], verdict.used, verdict.integrity,
-                        verdict.stack, f"the depth contradicts the pose where it predicts {names}")
+                        verdict.stack, f"the depth contradicts the pose where it predicts {names}", against_pose=True)
 
     def _result(self, req: _Request, fits: Sequence[_WallFit], verdict: _Verdict, passes: int,
                 t0: float) -> LocalizationResult:
@@ -360,6 +361,9 @@ class Localizer:
                              for j, why in (integ.excluded if integ is not None else [])],
                 "evidence_against": [{"id": w.report.id, "camera": w.report.camera, "depth": w.evidence}
                                      for w in fits if w.evidence],
+                # Inconsistent because that depth outweighs the walls' agreement with the pose (the
+                # pose is wrong), rather than because the walls contradict one another.
+                "depth_against_pose": verdict.against_pose,
                 # How far one wrong wall could have moved the pose unseen (leave-one-out), m and rad.
                 "separation_m": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_h, 6),
                 "separation_rad": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_heading, 8)}
