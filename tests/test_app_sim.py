@@ -14,7 +14,7 @@ from dataclasses import replace
 import pytest
 
 from drivers.sim.world import WorldSettings
-from firmware_protocol import SetWheelSpeeds, Stop
+from firmware_protocol import Stop
 from robot.app.controller import AppOptions
 from robot.config import load_robot_config
 from robot.control.path_file import load_path, parse_path
@@ -46,6 +46,25 @@ def test_sim_clock_paper_path_vision_stays_within_10_mm_and_odometry_drifts():
     assert 0.2 < sum(vis.nees) / len(vis.nees) < 6.0
 
 
+class _Script:
+    """Steps run from the app's own ticks, each when its condition first holds: faults are
+    injected at a state of the run (the wheels turning, the driver having noticed), never at a
+    wall-clock instant, so a slow machine changes when things happen, not what is tested."""
+
+    def __init__(self, samples, steps):
+        self.samples, self.steps, self.done = samples, list(steps), []
+        self._watch = _watch(samples)
+
+    def on_tick(self, app, t):
+        self._watch(app, t)
+        if self.steps and self.steps[0][0](app):
+            self.steps.pop(0)[1](app)
+            self.done.append(t)
+
+
+HANG_GUARD = 300.0  # s: only against a hung app; a slow machine just takes longer
+
+
 def _run(rig, seconds_max, actions=()):
     """Run the app until it stops, with (delay, callable) actions scheduled on its loop."""
     async def main():
@@ -68,103 +87,132 @@ def _watch(samples):
 def test_realtime_app_survives_a_2_s_camera_stall_and_finishes_the_path():
     samples = []
     opts = AppOptions(install_signal_handlers=False)
+    marks = {}
+
+    def stall(app):
+        marks["t0"], marks["n0"] = samples[-1][0], len(samples)
+        for c in rig.cameras:
+            c.stall(2.0)
+
+    def stall_over(app):
+        marks["n1"] = len(samples)
+
+    # the stall starts once the robot is localized and driving, and lasts 2 s of the cameras' clock
+    script = _Script(samples, [(lambda app: samples[-1][1] == "localized"
+                                and max(abs(w) for w in rig.emulator.true_wheel_speeds) > 0.5, stall),
+                               (lambda app: samples[-1][0] - marks["t0"] > 2.0, stall_over)])
     with sim_rig(ROBOT, ARENA, (0.3, 0.6, 0.0), RealtimeSimSettings(fps=10, decimation=4), opts, plan=SHORT,
-                 on_tick=_watch(samples)) as rig:
-        stall = [lambda: [c.stall(2.0) for c in rig.cameras]]
-        rc = _run(rig, 40.0, [(1.5, stall[0])])
+                 on_tick=script.on_tick) as rig:
+        rc = _run(rig, HANG_GUARD)
         truth = rig.emulator.pose
     assert rc == 0 and rig.app.exit_reason == "path complete"
-    t0 = samples[0][0]
-    during = [s for s in samples if 1.5 + 1.3 < s[0] - t0 < 1.5 + 1.9]
-    assert during and all(s[1] != "localized" for s in during)  # quality reports the missing vision
-    assert all(s[2] < 1.0 for s in during)  # and health slows the robot down
-    after = [s for s in samples if s[0] - t0 > 1.5 + 3.5]
-    assert any(s[1] == "localized" for s in after)
+    assert len(script.done) == 2
+    during = samples[marks["n0"]:marks["n1"]]
+    blind = [s for s in during if s[1] != "localized"]
+    assert blind  # quality reports the missing vision ...
+    assert all(s[2] < 1.0 for s in blind)  # ... and health slows the robot down while it does
+    assert any(s[1] == "localized" for s in samples[marks["n1"]:])
     assert math.hypot(truth[0] - 0.4, truth[1] - 0.5) < 0.010
 
 
 def test_realtime_app_stops_commanding_while_the_serial_link_is_down_then_resumes():
     samples = []
     opts = AppOptions(install_signal_handlers=False)
+    marks = {}
+
+    def drop(app):
+        marks["moving_before"] = max(abs(w) for w in rig.emulator.true_wheel_speeds)
+        rig.emulator.go_silent(True)
+
+    def noticed(app):
+        marks["sent_at_notice"] = app.stats.commands_sent
+
+    def restore(app):
+        marks["speeds_during"] = rig.emulator.true_wheel_speeds
+        marks["sent_at_restore"] = app.stats.commands_sent
+        rig.emulator.go_silent(False)
+
+    script = _Script(samples, [
+        (lambda app: max(abs(w) for w in rig.emulator.true_wheel_speeds) > 1.0, drop),  # cut while driving
+        (lambda app: app.chassis.link_state.value == "lost", noticed),  # the driver noticed
+        # the wheels stood still while the host was cut off (the host's STOP or the board's watchdog)
+        (lambda app: max(abs(w) for w in rig.emulator.true_wheel_speeds) < 0.05, restore),
+    ])
     with sim_rig(ROBOT, ARENA, (0.3, 0.6, 0.0), RealtimeSimSettings(fps=10, decimation=4), opts, plan=SHORT,
-                 on_tick=_watch(samples)) as rig:
-        emu = rig.emulator
-        marks = {}
-
-        def drop():
-            marks["t_drop"] = emu.t_board
-            emu.go_silent(True)
-
-        def restore():
-            marks["t_back"] = emu.t_board
-            emu.go_silent(False)
-
-        def probe():
-            marks["speeds_during"] = emu.true_wheel_speeds
-            marks["moving_before"] = marks.get("moving_before", 0.0)
-
-        def before():
-            marks["moving_before"] = max(abs(w) for w in emu.true_wheel_speeds)
-
-        rc = _run(rig, 40.0, [(1.4, before), (1.5, drop), (2.3, probe), (2.5, restore)])
-        received = emu.received()
-        truth = emu.pose
+                 on_tick=script.on_tick) as rig:
+        rc = _run(rig, HANG_GUARD)
+        truth = rig.emulator.pose
     assert rc == 0 and rig.app.exit_reason == "path complete"
+    assert len(script.done) == 3
     assert any(s[4] == "lost" for s in samples) and samples[-1][4] == "ready"
-    # once the driver noticed the loss (link_timeout + a tick), no speed command reached the board
-    t_lost = marks["t_drop"] + ROBOT.chassis.link_timeout + 0.1
-    sent = [t for t, m in received if isinstance(m, SetWheelSpeeds) and t_lost < t < marks["t_back"]]
-    assert sent == []
-    # the wheels were turning, and stood still while the host was cut off (STOP or board watchdog)
-    assert marks["moving_before"] > 1.0
-    assert max(abs(w) for w in marks["speeds_during"]) < 0.05
+    # once the driver noticed the loss, no speed command was sent until the link came back
+    assert marks["sent_at_restore"] == marks["sent_at_notice"]
+    assert marks["moving_before"] > 1.0 and max(abs(w) for w in marks["speeds_during"]) < 0.05
     assert math.hypot(truth[0] - 0.4, truth[1] - 0.5) < 0.010
+
+
+def _wheels(rig) -> float:
+    return max(abs(w) for w in rig.emulator.true_wheel_speeds)
+
+
+def _wait_for(condition, what: str, guard: float = HANG_GUARD) -> None:
+    """Poll until ``condition()`` holds; the guard is against a hang only."""
+    import time as _time
+
+    end = _time.monotonic() + guard
+    while not condition():
+        assert _time.monotonic() < end, f"still waiting for {what} after {guard:.0f} s"
+        _time.sleep(0.01)
 
 
 def test_sigterm_during_motion_stops_the_wheels():
     opts = AppOptions(install_signal_handlers=True)
-    with sim_rig(ROBOT, ARENA, (0.3, 0.6, 0.0), RealtimeSimSettings(fps=10, decimation=4), opts, plan=SHORT) as rig:
+    moving = {}
+
+    def term(app):
+        moving["speeds"] = rig.emulator.true_wheel_speeds
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    script = _Script([], [(lambda app: _wheels(rig) > 1.0, term)])  # the signal comes while it drives
+    with sim_rig(ROBOT, ARENA, (0.3, 0.6, 0.0), RealtimeSimSettings(fps=10, decimation=4), opts, plan=SHORT,
+                 on_tick=script.on_tick) as rig:
         emu = rig.emulator
-        moving = {}
-
-        def term():
-            moving["speeds"] = emu.true_wheel_speeds
-            os.kill(os.getpid(), signal.SIGTERM)
-
-        rc = _run(rig, 20.0, [(2.0, term)])
-        import time as _time
-
-        _time.sleep(0.3)
+        rc = _run(rig, HANG_GUARD)
+        _wait_for(lambda: _wheels(rig) < 0.05, "the wheels to stand still after SIGTERM")
         stops = [m for _, m in emu.received() if isinstance(m, Stop)]
-        after = emu.true_wheel_speeds
         setpoints = emu.setpoints
     assert rc == 0 and rig.app.exit_reason == "signal SIGTERM"
     assert max(abs(w) for w in moving["speeds"]) > 1.0  # it was driving when the signal came
     assert stops, "the board received STOP"
-    assert max(abs(w) for w in setpoints) == 0.0 and max(abs(w) for w in after) < 0.05
+    assert max(abs(w) for w in setpoints) == 0.0
 
 
 def test_sigusr1_pauses_and_sigusr2_resumes_the_path():
     samples = []
     opts = AppOptions(install_signal_handlers=True)
+    marks = {}
+
+    def probe(app):
+        marks["paused_speeds"] = rig.emulator.true_wheel_speeds
+        marks["paused_pose"] = rig.emulator.pose
+        marks["t_paused"] = samples[-1][0]
+
+    def later(app):
+        marks["still_pose"] = rig.emulator.pose
+        os.kill(os.getpid(), signal.SIGUSR2)
+
+    script = _Script(samples, [
+        (lambda app: _wheels(rig) > 1.0, lambda app: os.kill(os.getpid(), signal.SIGUSR1)),  # pause while driving
+        (lambda app: samples[-1][5] == "paused" and _wheels(rig) < 0.05, probe),  # braked and holding ...
+        (lambda app: samples[-1][0] - marks["t_paused"] > 1.0, later),  # ... for a second; then resume
+    ])
     with sim_rig(ROBOT, ARENA, (0.3, 0.6, 0.0), RealtimeSimSettings(fps=10, decimation=4), opts, plan=SHORT,
-                 on_tick=_watch(samples)) as rig:
-        emu = rig.emulator
-        marks = {}
-
-        def probe():
-            marks["paused_speeds"] = emu.true_wheel_speeds
-            marks["paused_pose"] = emu.pose
-
-        def later():
-            marks["still_pose"] = emu.pose
-
-        rc = _run(rig, 40.0, [(1.5, lambda: os.kill(os.getpid(), signal.SIGUSR1)), (3.0, probe), (4.0, later),
-                              (4.1, lambda: os.kill(os.getpid(), signal.SIGUSR2))])
-        truth = emu.pose
+                 on_tick=script.on_tick) as rig:
+        rc = _run(rig, HANG_GUARD)
+        truth = rig.emulator.pose
     assert rc == 0 and rig.app.exit_reason == "path complete"
-    assert any(s[5] == "paused" for s in samples)
-    assert max(abs(w) for w in marks["paused_speeds"]) < 0.05  # braked and holding
+    assert len(script.done) == 3
+    assert max(abs(w) for w in marks["paused_speeds"]) < 0.05
     assert math.hypot(marks["still_pose"][0] - marks["paused_pose"][0], marks["still_pose"][1] - marks["paused_pose"][1]) < 1e-3
     assert math.hypot(truth[0] - 0.4, truth[1] - 0.5) < 0.010  # resumed and finished
 

@@ -370,7 +370,10 @@ def test_over_the_wire_clamped_command_is_nacked_and_a_dead_host_is_stopped_by_t
         deadline = time.monotonic() + 5.0
         while not emu.events("watchdog") and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(0.4)  # a ramp from 4 rad/s (0.1 s) and the motor lag
+        # a ramp from 4 rad/s (0.1 s) and the motor lag: waited for, a starved machine is slower
+        deadline = time.monotonic() + 10.0
+        while max(abs(w) for w in emu.true_wheel_speeds) >= 0.05 and time.monotonic() < deadline:
+            time.sleep(0.01)
         last_cmd = max(t for t, m in emu.received() if isinstance(m, fp.SetWheelSpeeds))
         (trip,) = emu.events("watchdog")
         assert 0.2 - 1e-6 <= trip[0] - last_cmd <= 0.25
