@@ -67,7 +67,9 @@ class AxisLimiter:
     Each tick picks the largest acceleration from which the jerk-limited braking staircase
     (a - J dt, a - 2 J dt, ... down to 0) still ends on the target, then moves the acceleration
     towards it by at most ``max_jerk * dt``. The speed therefore settles exactly on the target,
-    and a target that drops (a slow-down, a pose jump) is met as fast as the limits allow.
+    and a target that drops (a slow-down, a pose jump) is met as fast as the limits allow. The
+    staircase takes the next ticks to be as long as this one; when they are shorter (real-time
+    ticks jitter), a step that would pass a steady target lands on it instead.
     """
 
     def __init__(self, max_speed: float, max_accel: float, max_jerk: float):
