@@ -94,9 +94,12 @@ def main() -> int:
         "commit it was run at and its mode; `--only NAME` runs one section again and keeps the others.",
         "",
         f"- last run: commit {commit}, {datetime.datetime.now().strftime('%Y-%m-%d %H:%M')}, "
-        f"{'quick (smoke run)' if args.quick else 'full'}",
-        f"- machine: {cpu_name()}, {os.cpu_count()} logical cores, Python {platform.python_version()}, "
-        f"numpy {__import__('numpy').__version__}, OpenCV {__import__('cv2').__version__}; BLAS threads pinned to 1",
+        + ("merged sections run elsewhere (" + ", ".join(Path(f).name for f in args.merge) + "), each stamped where it ran"
+           + (f"; ran {', '.join(args.only)}" if args.only else "") if args.merge
+           else ('quick (smoke run)' if args.quick else 'full') + (f", sections {', '.join(args.only)}" if args.only else "")),
+        f"- machine of the last run: {cpu_name()}, {os.cpu_count()} logical cores, Python {platform.python_version()}, "
+        f"numpy {__import__('numpy').__version__}, OpenCV {__import__('cv2').__version__}; BLAS threads pinned to 1 "
+        "(each CPU section has its own machine-factor line)",
         "",
     ]
     run = args.only or ([] if args.merge else SECTIONS)
