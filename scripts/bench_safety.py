@@ -68,9 +68,9 @@ def run(quick: bool = False) -> str:
 
 
 def building_false_stops(n: int) -> list:
-    fzk = ROOT / "config" / "maps" / "fzk_haus_ground.yaml"
+    fzk = load_plane_map(ROOT / "config" / "maps" / "fzk_haus_ground.yaml")
     tour = load_path(ROOT / "config" / "paths" / "fzk_house_room.yaml")
-    runs = [cluttered_run(ROBOT, load_plane_map(fzk), tour, seed) for seed in range(n)]
+    runs = [cluttered_run(ROBOT, fzk, tour, seed) for seed in range(n)]
     false = [r for r in runs if r.stop_ticks]
     unfinished = [r for r in runs if not r.finished]
     out = [f"- FZK house room tour, {n} runs with vision among 10 random site items each (kept 0.5 m clear of the "

@@ -126,7 +126,7 @@ def cluttered_run(robot: RobotConfig, plane_map: PlaneMap, plan: PathPlan, seed:
     the path's course, and its walls as built: nothing stands in the way, so any tick held in the
     stop zone is a false stop."""
     world = WorldSettings(seed=seed, site=items, as_built=True, keep_clear=tuple(path_course(plan, clearance_step)))
-    start = (plan.start.x, plan.start.y, plan.start.heading) if plan.start is not None else (0.0, 0.0, 0.0)
+    start = (plan.start.x, plan.start.y, plan.start.heading)  # path_course has refused a plan without one
     # The same seed draws the same scene as the run's world (sample_world is what SimWorld calls).
     _, scene = sample_world(plane_map, start, seed, world.radius_error_std, world.clutter, world.site,
                             world.as_built, world.keep_clear)
