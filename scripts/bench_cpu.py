@@ -1005,22 +1005,12 @@ def cost_model(runs: List[Dict[str, Any]]) -> Optional[Dict[str, float]]:
 
 # -- imports ---------------------------------------------------------------------------------------
 
-# "X without filterpy": filterpy.kalman replaced by a stub class before the import, to measure
-# what the controller's import costs without filterpy (it would not run so; the import is all).
+# filterpy.kalman is measured for what it would cost: the controller no longer imports it (its EKF
+# equations are written out in robot/fusion/ekf.py and tested against it).
 IMPORTS = ["numpy", "scipy.linalg", "filterpy.kalman", "robot.localization.localizer", "robot.fusion.ekf",
-           "drivers.chassis.serial_chassis", "robot.app.controller", "robot.app.controller without filterpy"]
-_STUB = """
-import types
-_fp, _fk = types.ModuleType('filterpy'), types.ModuleType('filterpy.kalman')
-class ExtendedKalmanFilter:
-    def __init__(self, dim_x, dim_z, dim_u=0):
-        pass
-_fk.ExtendedKalmanFilter, _fp.kalman = ExtendedKalmanFilter, _fk
-sys.modules['filterpy'], sys.modules['filterpy.kalman'] = _fp, _fk
-"""
+           "drivers.chassis.serial_chassis", "robot.app.controller"]
 _IMPORT_PROBE = """
 import json, resource, sys
-{stub}
 r0 = resource.getrusage(resource.RUSAGE_SELF)
 import {mod}
 r1 = resource.getrusage(resource.RUSAGE_SELF)
@@ -1071,12 +1061,12 @@ def imports(python: str, modules: Sequence[str]) -> Dict[str, Any]:
     """What importing each module loads, each in a fresh interpreter."""
     out: Dict[str, Any] = {"modules": list(modules)}
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    base = subprocess.run([python, "-c", _IMPORT_PROBE.format(mod="os", stub="")], capture_output=True, text=True,
+    base = subprocess.run([python, "-c", _IMPORT_PROBE.format(mod="os")], capture_output=True, text=True,
                           env=env, timeout=120)
     out["baseline_rss"] = json.loads(base.stdout.strip().splitlines()[-1])["rss"] if base.returncode == 0 else float("nan")
     for mod in modules:
-        name, _, stub = mod.partition(" without filterpy")
-        code = _IMPORT_PROBE.format(mod=name, stub=_STUB if _ else "")
+        name = mod
+        code = _IMPORT_PROBE.format(mod=name)
         p = subprocess.run([python, "-X", "importtime", "-c", code], capture_output=True, text=True, env=env,
                            timeout=120)
         if p.returncode != 0:

@@ -145,3 +145,34 @@ def test_without_fresh_depth_the_protective_stop_holds_the_robot():
         out = core.control_step(t)
     assert out.wheels is not None and max(abs(w) for w in out.wheels) == 0.0
     assert "no fresh depth" in out.reason
+
+
+def test_one_fusion_step_for_the_frames_of_both_cameras_fuses_what_one_at_a_time_would():
+    """The app fuses the frames of all cameras in one filter update (one replay of the history):
+    the pose and the accepted walls are those of fusing them one after the other."""
+    from drivers.sim.render import SimScene, render_depth_frame
+    from robot.localization.localizer import Localizer
+    from robot.maps.plane_map import load_plane_map
+
+    arena = load_plane_map("config/maps/paper_arena.yaml")
+    truth = (0.5, 0.5, 0.3)
+    scene, rng = SimScene(arena), np.random.default_rng(3)
+    loc = Localizer(ROBOT, arena)
+    cores = [ControllerCore(ROBOT, vision=True, t_start=0.0) for _ in range(2)]
+    start = (truth[0] + 0.01, truth[1] - 0.008, truth[2] + 0.01)
+    for core in cores:
+        core.set_pose(0.0, *start, np.diag([0.02**2, 0.02**2, math.radians(1.0) ** 2]))
+        for k in range(1, 11):
+            core.on_odometry(_odo(0.01 * k))
+    items = []
+    for i, cam in enumerate(ROBOT.cameras):
+        frame = replace(render_depth_frame(ROBOT, scene, cam.name, truth, rng=rng), t_capture=0.05 + 0.01 * i)
+        (x, y, phi), P = cores[0].coarse_pose(frame.t_capture)
+        items.append((loc.localize([frame], (x, y, phi), P), frame.t_capture, cam.name))
+    together = cores[0].on_localizations(items)
+    alone = [cores[1].on_localization(*item) for item in items]
+    assert [sorted(r.accepted) for r in together] == [sorted(r.accepted) for r in alone]
+    assert sum(len(r.accepted) for r in together) >= 3
+    (pa, Pa), (pb, Pb) = cores[0].pose(0.1), cores[1].pose(0.1)
+    assert np.allclose(pa, pb, atol=1e-9) and np.allclose(Pa, Pb, rtol=1e-6, atol=1e-15)
+    assert math.hypot(pa[0] - truth[0], pa[1] - truth[1]) < 0.003  # and both did correct the 13 mm start error

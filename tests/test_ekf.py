@@ -470,3 +470,81 @@ def test_the_float_motion_the_filter_replays_equals_the_numpy_reference():
         np.testing.assert_allclose(m[:3], inc, rtol=1e-12, atol=1e-15)
         C = 1.7 * D @ Q @ D.T
         np.testing.assert_allclose(m[3:9], [C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2]], rtol=1e-9, atol=1e-18)
+
+
+def _random_cov(rng, scale):
+    A = rng.normal(size=(3, 3)) * scale
+    return A @ A.T + np.diag(scale**2 * np.array([0.1, 0.1, 0.1]))
+
+
+def test_the_filter_steps_are_filterpys_ekf_equations():
+    """The predict and update written out in floats are filterpy's ExtendedKalmanFilter (the
+    reference: x' = x + u, P' = F P F^T + Q; K = P H^T S^-1, Joseph-form P) on random states,
+    motions, walls and pose fixes, to rounding."""
+    kalman = pytest.importorskip("filterpy.kalman", reason="filterpy (the reference) is not installed")
+    from robot.fusion.ekf import _Fix, _motion
+
+    rng = np.random.default_rng(7)
+    f = PoseFilter()
+    for _ in range(200):
+        x = np.array([[rng.uniform(-5, 5)], [rng.uniform(-5, 5)], [rng.uniform(-math.pi, math.pi)]])
+        P = _random_cov(rng, rng.choice([1e-3, 1e-2, 0.1]))
+        # predict: a motion as the history builds it
+        vx, vy, wz, dt = rng.normal(0, 0.3), rng.normal(0, 0.3), rng.normal(0, 0.5), rng.uniform(0.005, 0.2)
+        mo = _motion(vx, vy, wz, _random_cov(rng, 0.01).tolist(), dt, 1.0, f.config)
+        xn, Pn = f._predict(x, P, mo)
+        i0, i1, i2, a, b, e, d, g_, h, var_pos, var_phi = mo
+        phi = x.item(2)
+        c, s = math.cos(phi), math.sin(phi)
+        Rg = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+        Qb = np.array([[a, b, e], [b, d, g_], [e, g_, h]])
+        Q = Rg @ Qb @ Rg.T + np.diag([var_pos, var_pos, var_phi])
+        gx, gy = c * i0 - s * i1, s * i0 + c * i1
+        ref = kalman.ExtendedKalmanFilter(dim_x=3, dim_z=2)
+        ref.x, ref.P = x.copy(), P.copy()
+        ref.F = np.array([[1.0, 0.0, -gy], [0.0, 1.0, gx], [0.0, 0.0, 1.0]])
+        ref.Q = Q
+        ref.predict(u=0)
+        ref.x = x + np.array([[gx], [gy], [i2]])
+        ref.x[2, 0] = wrap_angle(ref.x.item(2))
+        assert np.allclose(xn, ref.x, rtol=0, atol=1e-12)
+        assert np.allclose(Pn, 0.5 * (ref.P + ref.P.T), rtol=1e-9, atol=1e-15)
+        # update with a wall: z = (d_R, angle of the normal in R)
+        ang = rng.uniform(-math.pi, math.pi)
+        n0, n1, dg = math.cos(ang), math.sin(ang), rng.uniform(-5, 5)
+        R = _random_cov(rng, 0.01)[:2, :2] + np.eye(2) * 1e-6
+        z0 = n0 * x.item(0) + n1 * x.item(1) + dg + rng.normal(0, 0.01)
+        z1 = wrap_angle(ang - x.item(2) + rng.normal(0, 0.01))
+        model = (n0, n1, dg, ang, z0, z1, R[0, 0], R[0, 1], R[1, 0], R[1, 1], "wall")
+        f._gate2 = math.inf
+        xu, Pu, res = f._apply_plane(x, P, model)
+        assert res.accepted
+        H = np.array([[n0, n1, 0.0], [0.0, 0.0, -1.0]])
+
+        def residual(za, zb):
+            r = za - zb
+            r[1, 0] = wrap_angle(r.item(1))
+            return r
+
+        ref = kalman.ExtendedKalmanFilter(dim_x=3, dim_z=2)
+        ref.x, ref.P = x.copy(), P.copy()
+        def hx(st, n0=n0, n1=n1, dg=dg, ang=ang):
+            return np.array([[n0 * st.item(0) + n1 * st.item(1) + dg], [wrap_angle(ang - st.item(2))]])
+
+        ref.update(np.array([[z0], [z1]]), HJacobian=lambda st, H=H: H, R=R, residual=residual, Hx=hx)
+        ref.x[2, 0] = wrap_angle(ref.x.item(2))
+        assert np.allclose(xu, ref.x, rtol=0, atol=1e-10)
+        assert np.allclose(Pu, 0.5 * (ref.P + ref.P.T), rtol=1e-7, atol=1e-14)
+        # an absolute pose fix (H = I)
+        target = x.reshape(3) + rng.normal(0, 0.02, 3)
+        Rf = _random_cov(rng, 0.02)
+        fix = _Fix((0.0, 2, "", "", 0), 0.0, pose=target, pose_cov=Rf, gate=False)
+        xf, Pf, res = f._apply_fix(x, P, fix)
+        ref = kalman.ExtendedKalmanFilter(dim_x=3, dim_z=3)
+        ref.x, ref.P = x.copy(), P.copy()
+        zt = target.reshape(3, 1).copy()
+        zt[2, 0] = x.item(2) + wrap_angle(target[2] - x.item(2))
+        ref.update(zt, HJacobian=lambda st: np.eye(3), Hx=lambda st: st, R=Rf)
+        ref.x[2, 0] = wrap_angle(ref.x.item(2))
+        assert res.accepted and np.allclose(xf, ref.x, rtol=0, atol=1e-10)
+        assert np.allclose(Pf, 0.5 * (ref.P + ref.P.T), rtol=1e-7, atol=1e-14)

@@ -82,6 +82,9 @@ def test_recorded_sim_run_replays_to_the_same_poses(tmp_path):
     assert first.topic == "/config"
     assert first.message["effective_config"]["map"] == os.path.abspath(ARENA.source)
     assert replace(RecordingReader(path).robot_config(), source=ROBOT.source) == ROBOT
+    # the frames of both cameras went to the filter together, one fusion step per set of frames
+    steps = collections.Counter(m.message["fusion_step"] for m in messages if m.topic == "/planes")
+    assert max(steps.values()) == len(ROBOT.cameras)
     report = replay(path)
     assert report.localizations >= 10 and report.poses_compared >= 5 and report.odometry > 200
     assert report.ok(), report.to_json()

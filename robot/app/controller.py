@@ -140,6 +140,7 @@ class RobotApp:
         self._stall_control_until = 0.0  # test hook: the control task sleeps through its ticks
         self.last_output = None
         self._record_seq = 0
+        self._fusion_steps = 0  # sets of frames fused, one filter update each
         self.latest_frames: Dict[str, DepthFrame] = {}  # newest frame per camera, for set-pose checks and relocalize
         # Started once the tasks run, stopped before anything else: objects with async start()/stop()
         # (the control socket, the fleet link); ``remote`` adds the config's.
@@ -398,41 +399,52 @@ class RobotApp:
             self._record("odometry", odo.t, channels.odometry_message(odo.t, odo.speeds, odo.angles, odo.dt, odo.t_board))
 
     async def _localization_task(self) -> None:
+        """The frames of all cameras are handled as one set: one hop to the worker (obstacle scans
+        and localizations) and one fusion step per set, so the filter's history is replayed once
+        per set rather than once per camera. Each frame is still localized alone, from the coarse
+        pose at its own capture time: unsynchronized cameras are up to a frame period apart."""
         loop = self._loop
         while True:
             await self._new_frame.wait()
             self._new_frame.clear()
-            for name in list(self._slots):
-                frame = self._slots.get(name)
-                if frame is None:
-                    continue
-                self._slots[name] = None
-                # The camera's calibrated depth scale; the recording keeps the frame as the camera gave it.
-                scaled = calibrated_frame(frame, self.robot.camera(frame.camera).depth_scale)
-                # The protective stop sees every frame (off the loop), with the pose if there is one.
-                seen_from = self.core.coarse_pose(frame.t_capture)[0] if self.core.initialized else None
-                await loop.run_in_executor(self._executor, self._scan_obstacles, scaled, seen_from)
+            await self._rest_of_set()
+            frames = [f for f in (self._slots.get(name) for name in list(self._slots)) if f is not None]
+            for frame in frames:
+                self._slots[frame.camera] = None
+            if not frames:
+                continue
+            # The protective stop sees every frame, with the pose if there is one; the localizer
+            # only once there is a pose to refine.
+            localize = self.core.initialized and self.localizer is not None
+            coarse = [self.core.coarse_pose(f.t_capture) if self.core.initialized else None for f in frames]
+            for frame in frames:
                 self.live_view.publish_depth(frame.t_capture, frame)
-                if not self.core.initialized or self.localizer is None:
-                    continue
-                (x, y, phi), P = self.core.coarse_pose(frame.t_capture)
-                self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
-                try:
-                    result = await loop.run_in_executor(self._executor, self.localizer.localize, [scaled], (x, y, phi), P,
-                                                        self.options.method)
-                except Exception as e:  # a bad frame is reported and skipped, never fused
-                    log.warning("camera %s frame %d: localization failed: %s", name, frame.frame_number, e)
+                if localize:
+                    self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
+            outcomes = await loop.run_in_executor(self._executor, self._process_frames, frames, coarse, localize)
+            if not localize:
+                continue
+            done = []
+            for frame, prior, result in zip(frames, coarse, outcomes):
+                if isinstance(result, Exception):  # a bad frame is reported and skipped, never fused
+                    log.warning("camera %s frame %d: localization failed: %s", frame.camera, frame.frame_number, result)
                     continue
                 self.stats.localizations += 1
                 self.stats.localize_ms.append(result.ms)
-                if len(self.stats.localize_ms) > 10000:
-                    del self.stats.localize_ms[:5000]
-                report = self.core.on_localization(result, frame.t_capture, name)
+                done.append((frame, prior, result))
+            if len(self.stats.localize_ms) > 10000:
+                del self.stats.localize_ms[:5000]
+            if not done:
+                continue
+            reports = self.core.on_localizations([(result, frame.t_capture, frame.camera) for frame, _, result in done])
+            self._fusion_steps += 1
+            for (frame, ((x, y, phi), P), result), report in zip(done, reports):
+                name = frame.camera
                 # everything replay needs to redo this localization bit for bit, and what it gave
                 self._record("planes", frame.t_capture, channels.planes_message(
                     frame.t_capture, name, result.planes, frame_number=frame.frame_number, method=self.options.method,
                     coarse=(x, y, phi), coarse_cov=P, status=result.status, accepted=report.accepted,
-                    rejected=report.rejected, measurements=result.measurements))
+                    rejected=report.rejected, measurements=result.measurements, fusion_step=self._fusion_steps))
                 self.live_view.publish_planes(frame.t_capture, name, result.planes)
                 if self.recorder.active:
                     self.recorder.write(channels.TOPIC_PLANE_FITS, frame.t_capture, channels.plane_fits_message(
@@ -441,6 +453,40 @@ class RobotApp:
                 if labels is not None:
                     self.live_view.publish_roi(frame.t_capture, name, labels)
                     self.recorder.write_roi(frame.t_capture, name, labels)
+
+    async def _rest_of_set(self) -> None:
+        """Wait for the other streaming cameras' frames, at most half a frame period after the first:
+        unsynchronized cameras deliver at any phase, and the protective stop's reaction time must
+        not wait for a camera that has stalled."""
+        wait = 0.5 / max(c.fps for c in self.robot.cameras) if self.robot.cameras else 0.0
+        deadline = time.monotonic() + wait
+        while True:
+            missing = [name for name, frame in self._slots.items()
+                       if frame is None and self.camera_states.get(name) == CameraState.STREAMING.value]
+            left = deadline - time.monotonic()
+            if not missing or left <= 0:
+                return
+            self._new_frame.clear()
+            try:
+                await asyncio.wait_for(self._new_frame.wait(), left)
+            except asyncio.TimeoutError:
+                return
+
+    def _process_frames(self, frames: Sequence[DepthFrame], coarse: Sequence[Optional[Tuple]], localize: bool) -> list:
+        """On the worker: each frame's obstacle scan, then (``localize``) its localization, or the
+        exception that stopped it."""
+        scaled = [calibrated_frame(f, self.robot.camera(f.camera).depth_scale) for f in frames]
+        for frame, prior in zip(scaled, coarse):
+            self._scan_obstacles(frame, None if prior is None else prior[0])
+        if not localize:
+            return []
+        out: list = []
+        for frame, ((x, y, phi), P) in zip(scaled, coarse):
+            try:
+                out.append(self.localizer.localize([frame], (x, y, phi), P, self.options.method))
+            except Exception as e:
+                out.append(e)
+        return out
 
     async def _recovery_task(self) -> None:
         """Relocalize when the recovery supervisor asks (no pose, lost, kidnapped, a saved pose the

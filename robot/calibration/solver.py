@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from scipy.linalg import cho_solve_banded, cholesky_banded
 
 from robot.base.geometry import wrap_angle
 from robot.calibration.model import (
@@ -146,6 +145,10 @@ class _Normal:
             for a in range(3):
                 for b in range(3):
                     ab[2 + a - b, 3 * k + 3 + b] = self.B[:, a, b]
+        # Imported here: the controller loads this module with the online calibration, which is
+        # off by default, and scipy.linalg costs 12 MiB of the Nano's memory.
+        from scipy.linalg import cho_solve_banded, cholesky_banded
+
         cb = cholesky_banded(ab, check_finite=False)
         return cho_solve_banded((cb, False), rhs.reshape(3 * K, -1), check_finite=False)
 

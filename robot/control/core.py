@@ -233,34 +233,42 @@ class ControllerCore:
 
     def on_localization(self, result: LocalizationResult, t_capture: float, camera: str = "") -> FusionReport:
         """Fuse the planes of one localization (frames captured at ``t_capture``)."""
-        report = FusionReport(t_capture, camera, fits=len(result.measurements))
-        self.counters["localizations"] += 1
+        return self.on_localizations([(result, t_capture, camera)])[0]
+
+    def on_localizations(self, items: Sequence[Tuple[LocalizationResult, float, str]]) -> List[FusionReport]:
+        """Fuse several localizations (each ``(result, t_capture, camera)``: the frames of every
+        camera taken together) in one filter update, so the history after the earliest of them is
+        replayed once, not once per camera. Each measurement keeps its own capture time."""
+        reports = [FusionReport(t, camera, fits=len(result.measurements)) for result, t, camera in items]
+        self.counters["localizations"] += len(items)
         if not self.vision or not self.filter.initialized:
-            return report
-        if not result.measurements:
-            self._note_recovery(result, t_capture, 0)
-            return report
-        raw = result
-        if self.calibration is not None:
-            result = self.calibration.correct(result)
-        outcomes = self.filter.update_planes(result.measurements)
-        for meas, res in zip(result.measurements, outcomes):
-            self.quality.note_update(meas.t_capture, res.accepted)
-            if res.accepted:
-                report.accepted.append(meas.plane_id)
-            else:
-                report.rejected.append((meas.plane_id, res.reason))
-        self.counters["planes_accepted"] += len(report.accepted)
-        self.counters["planes_rejected"] += len(report.rejected)
-        if report.accepted:
-            self.health.localization_succeeded(t_capture)
-            self._protection = FusedProtection.from_localization(raw)
-            self._last_fix = max(self._last_fix, t_capture)
-            self.health.note_accepted(t_capture, len(report.accepted))
-        self._note_recovery(result, t_capture, len(report.accepted))
-        if self.calibration is not None and report.accepted:
-            self.calibration.add_localization(raw, t_capture, report.accepted, self.pose(t_capture)[0])
-        return report
+            return reports
+        corrected = [result if self.calibration is None or not result.measurements else self.calibration.correct(result)
+                     for result, _, _ in items]
+        measurements = [m for result in corrected for m in result.measurements]
+        outcomes = iter(self.filter.update_planes(measurements) if measurements else [])
+        for (raw, t_capture, _), result, report in zip(items, corrected, reports):
+            if not result.measurements:
+                self._note_recovery(result, t_capture, 0)
+                continue
+            for meas in result.measurements:
+                res = next(outcomes)
+                self.quality.note_update(meas.t_capture, res.accepted)
+                if res.accepted:
+                    report.accepted.append(meas.plane_id)
+                else:
+                    report.rejected.append((meas.plane_id, res.reason))
+            self.counters["planes_accepted"] += len(report.accepted)
+            self.counters["planes_rejected"] += len(report.rejected)
+            if report.accepted:
+                self.health.localization_succeeded(t_capture)
+                self._protection = FusedProtection.from_localization(raw)
+                self._last_fix = max(self._last_fix, t_capture)
+                self.health.note_accepted(t_capture, len(report.accepted))
+            self._note_recovery(result, t_capture, len(report.accepted))
+            if self.calibration is not None and report.accepted:
+                self.calibration.add_localization(raw, t_capture, report.accepted, self.pose(t_capture)[0])
+        return reports
 
     def relocalization_due(self, t: float) -> bool:
         """Whether the shell should relocalize now: asked for by the recovery supervisor, and the

@@ -1,4 +1,4 @@
-"""Pose fusion (see docs/architecture.md, 'EKF'): an EKF on (x, y, phi) in G, built on filterpy.
+"""Pose fusion (see docs/architecture.md, 'EKF'): an EKF on (x, y, phi) in G (filterpy's equations, written out).
 
 Model and conventions:
 
@@ -48,7 +48,6 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from robot.base.geometry import arc_coefficients, wrap_angle
 from robot.base.stats import chi2_quantile
@@ -63,8 +62,10 @@ _KIND_POSE = 2
 _KIND_BASE = -1
 
 # The filter runs at the odometry rate and replays its history for every lagged fix, so the
-# per-step work is plain floats on cached, state-independent parts; only filterpy's own
-# predict/update touch numpy. A motion is (i0, i1, i2, m00, m01, m02, m11, m12, m22, var_pos,
+# per-step work is plain floats on cached, state-independent parts: the EKF's predict and update
+# are filterpy's equations (tests/test_ekf.py holds them against filterpy's ExtendedKalmanFilter)
+# written out for three states, without filterpy's per-call numpy work and without the 46 MiB of
+# scipy modules importing it loads (docs/cpu-budget.md). A motion is (i0, i1, i2, m00, m01, m02, m11, m12, m22, var_pos,
 # var_phi): the body increment of one constant-twist segment, q_scale * D Q_twist D^T (its
 # twist noise in the start frame, symmetric) and the floor variances.
 Motion = Tuple[float, float, float, float, float, float, float, float, float, float, float]
@@ -122,23 +123,23 @@ def _motion(vx: float, vy: float, wz: float, Q: Sequence[Sequence[float]], dt: f
 _ZERO_Q = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
 
-class _PlanarEKF(ExtendedKalmanFilter):
-    """filterpy's EKF with the exact planar motion: ``u`` is the increment already rotated into G."""
-
-    def __init__(self):
-        super().__init__(dim_x=3, dim_z=2)
-
-    def predict_x(self, u=0):
-        x = self.x
-        # The angle is wrapped here, on the fresh array, so the result needs no copy afterwards.
-        self.x = np.array([[x.item(0) + u[0]], [x.item(1) + u[1]], [wrap_angle(x.item(2) + u[2])]])
-
-
-def _wrapped_residual(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """z - h(x) for filterpy, with the angle row wrapped (the angle is the last row)."""
-    r = a - b
-    r[-1, 0] = wrap_angle(float(r[-1, 0]))
-    return r
+def _joseph(P: Sequence[Sequence[float]], A: Sequence[Sequence[float]], K: Sequence[Sequence[float]],
+            R: Sequence[Sequence[float]]) -> np.ndarray:
+    """A P A^T + K R K^T (the Joseph form of the update, A = I - K H), symmetrised, for a 3-state
+    filter and an m-dimensional measurement, written out in floats: numpy's per-call cost is
+    several times the arithmetic of these small matrices."""
+    AP = [[A[i][0] * P[0][j] + A[i][1] * P[1][j] + A[i][2] * P[2][j] for j in range(3)] for i in range(3)]
+    m = len(R)
+    KR = [[sum(K[i][k] * R[k][j] for k in range(m)) for j in range(m)] for i in range(3)]
+    out = [[0.0] * 3 for _ in range(3)]
+    for i in range(3):
+        for j in range(i, 3):
+            v = (AP[i][0] * A[j][0] + AP[i][1] * A[j][1] + AP[i][2] * A[j][2]
+                 + sum(KR[i][k] * K[j][k] for k in range(m)))
+            w = (AP[j][0] * A[i][0] + AP[j][1] * A[i][1] + AP[j][2] * A[i][2]
+                 + sum(KR[j][k] * K[i][k] for k in range(m)))
+            out[i][j] = out[j][i] = 0.5 * (v + w)
+    return np.array(out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -166,7 +167,7 @@ class _Fix:
     pose_cov: Optional[np.ndarray] = None
     gate: bool = True
     # A plane's model, taken once when it is inserted (it is replayed many times):
-    # (n0, n1, d_G, atan2(n_G), z0, z1, R (2x2) entries, H, R, z column, label).
+    # (n0, n1, d_G, atan2(n_G), z0, z1, R (2x2) entries, label); H = [[n0, n1, 0], [0, 0, -1]].
     model: Optional[tuple] = None
 
 
@@ -264,7 +265,6 @@ class PoseFilter:
         self.config = config or FilterConfig()
         self._gate2 = chi2_quantile(self.config.gate_probability, 2)
         self._gate3 = chi2_quantile(self.config.gate_probability, 3)
-        self._ekf = _PlanarEKF()
         self._base: Optional[_Checkpoint] = None
         self._odom: List[_Odom] = []
         self._odom_keys: List[Key] = []
@@ -422,9 +422,7 @@ class PoseFilter:
         if math.hypot(n0, n1) < self.config.min_wall_normal:
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: not a wall (normal too close to vertical)")
         (r00, r01), (r10, r11) = R.tolist()
-        H = np.array([[n0, n1, 0.0], [0.0, 0.0, -1.0]])
-        return (n0, n1, d, math.atan2(n1, n0), z0, z1, r00, r01, r10, r11, H, R, z.reshape(2, 1).copy(),
-                f"plane {meas.plane_id} ({meas.camera})")
+        return (n0, n1, d, math.atan2(n1, n0), z0, z1, r00, r01, r10, r11, f"plane {meas.plane_id} ({meas.camera})")
 
     def update_pose(self, t: float, x: float, y: float, phi: float, cov: np.ndarray, gate: bool = True) -> UpdateResult:
         """Fuse an absolute pose fix (e.g. from an operator or a global solve) at time t."""
@@ -674,17 +672,20 @@ class PoseFilter:
             q00, q01, q02 = q00 + extra[0], q01 + extra[1], q02 + extra[2]
             q11, q12, q22 = q11 + extra[3], q12 + extra[4], q22 + extra[5]
         gx, gy = c * i0 - s * i1, s * i0 + c * i1
-        ekf = self._ekf
-        ekf.x = x  # filterpy replaces x and P with new arrays, so the stored states need no copies
-        ekf.P = P
-        ekf.F = np.array([[1.0, 0.0, -gy], [0.0, 1.0, gx], [0.0, 0.0, 1.0]])
-        ekf.Q = np.array([[q00, q01, q02], [q01, q11, q12], [q02, q12, q22]])
-        ekf.predict(u=(gx, gy, i2))
-        Pn = ekf.P
-        return ekf.x, 0.5 * (Pn + Pn.T)
+        # x' = x + (gx, gy, i2); P' = F P F^T + Q with F = [[1, 0, -gy], [0, 1, gx], [0, 0, 1]].
+        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P.tolist()
+        a00, a01, a02 = p00 - gy * p20, p01 - gy * p21, p02 - gy * p22  # rows of F P
+        a10, a11, a12 = p10 + gx * p20, p11 + gx * p21, p12 + gx * p22
+        b01, b10 = a01 + gx * a02, a10 - gy * a12  # (F P F^T)[0][1] and [1][0]: equal up to rounding
+        b02, b20 = a02, p20 - gy * p22
+        b12, b21 = a12, p21 + gx * p22
+        m01, m02, m12 = q01 + 0.5 * (b01 + b10), q02 + 0.5 * (b02 + b20), q12 + 0.5 * (b12 + b21)
+        xn = np.array([[x.item(0) + gx], [x.item(1) + gy], [wrap_angle(phi + i2)]])
+        Pn = np.array([[a00 - gy * a02 + q00, m01, m02], [m01, a11 + gx * a12 + q11, m12], [m02, m12, p22 + q22]])
+        return xn, Pn
 
     def _apply_plane(self, x: np.ndarray, P: np.ndarray, model: tuple):
-        n0, n1, dg, ang, z0, z1, r00, r01, r10, r11, H, R, z, what = model
+        n0, n1, dg, ang, z0, z1, r00, r01, r10, r11, what = model
         px, py, phi = x.item(0), x.item(1), x.item(2)
         y0 = z0 - (n0 * px + n1 * py + dg)
         y1 = wrap_angle(z1 - wrap_angle(ang - phi))
@@ -703,43 +704,32 @@ class PoseFilter:
         if not math.isfinite(d2) or d2 > threshold:
             return x, P, UpdateResult(False, d2, f"{what}: gated out (d^2 = {d2:.1f} > {threshold:.1f})")
 
-        def hx(st):
-            return np.array([[n0 * st.item(0) + n1 * st.item(1) + dg], [wrap_angle(ang - st.item(2))]])
-
-        ekf = self._ekf
-        ekf.x = x
-        ekf.P = P
-        ekf.update(z, HJacobian=lambda st: H, Hx=hx, R=R, residual=_wrapped_residual)
-        xn = ekf.x  # a new array: filterpy keeps its own copy as x_post
-        xn[2, 0] = wrap_angle(xn.item(2))
-        Pn = ekf.P
-        return xn, 0.5 * (Pn + Pn.T), UpdateResult(True, d2, "")
+        # K = P H^T S^-1, x' = x + K y, P' = (I - K H) P (I - K H)^T + K R K^T (filterpy's update).
+        si00, si01, si10, si11 = s11 / det, -s01 / det, -s10 / det, s00 / det
+        pht = ((p00 * n0 + p01 * n1, -p02), (p10 * n0 + p11 * n1, -p12), (p20 * n0 + p21 * n1, -p22))
+        K = [(a * si00 + b * si10, a * si01 + b * si11) for a, b in pht]
+        A = [[(1.0 if i == 0 else 0.0) - k0 * n0, (1.0 if i == 1 else 0.0) - k0 * n1, (1.0 if i == 2 else 0.0) + k1]
+             for i, (k0, k1) in enumerate(K)]
+        xn = np.array([[px + K[0][0] * y0 + K[0][1] * y1], [py + K[1][0] * y0 + K[1][1] * y1],
+                       [wrap_angle(phi + K[2][0] * y0 + K[2][1] * y1)]])
+        return xn, _joseph(((p00, p01, p02), (p10, p11, p12), (p20, p21, p22)), A, K, ((r00, r01), (r10, r11))), \
+            UpdateResult(True, d2, "")
 
     def _apply_fix(self, x: np.ndarray, P: np.ndarray, fix: _Fix):
-        """An absolute pose fix (rare: an operator, a global solve); the plain numpy path."""
-        ekf = self._ekf
+        """An absolute pose fix (rare: an operator, a global solve); H = I, in numpy."""
         xv = x.reshape(3)
-        H = np.eye(3)
         R = fix.pose_cov
         y = fix.pose - xv
-        y[2] = wrap_angle(float(y[2]))
-        # Unwrap the target angle next to the state so the residual is the short way round.
-        z = (xv + y).reshape(3, 1)
-
-        def hx(s):
-            return s
-
+        y[2] = wrap_angle(float(y[2]))  # the short way round
         threshold, what = (self._gate3 if fix.gate else math.inf), "pose fix"
-        S = H @ P @ H.T + R
+        S = P + R
         try:
             d2 = float(y @ np.linalg.solve(S, y))
+            K = P @ np.linalg.inv(S)
         except np.linalg.LinAlgError:
             return x, P, UpdateResult(False, math.nan, f"{what}: singular innovation covariance")
         if not math.isfinite(d2) or d2 > threshold:
             return x, P, UpdateResult(False, d2, f"{what}: gated out (d^2 = {d2:.1f} > {threshold:.1f})")
-        ekf.x = x.copy()
-        ekf.P = P.copy()
-        ekf.update(z, HJacobian=lambda s: H, Hx=hx, R=R, residual=_wrapped_residual)
-        xn = ekf.x.copy()
+        xn = (xv + K @ y).reshape(3, 1)
         xn[2, 0] = wrap_angle(float(xn[2, 0]))
-        return xn, 0.5 * (ekf.P + ekf.P.T), UpdateResult(True, d2, "")
+        return xn, _joseph(P.tolist(), (np.eye(3) - K).tolist(), K.tolist(), R.tolist()), UpdateResult(True, d2, "")

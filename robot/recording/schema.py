@@ -190,6 +190,8 @@ SCHEMAS: Dict[str, Tuple[str, Dict[str, Any]]] = {
              "d": {"type": ["number", "null"], "description": "fitted offset, robot frame, m"},
              "used": {"type": "boolean"}, "reason": _STRING}}},
          "frame_number": _INT, "method": _STRING,
+         "fusion_step": {"type": "integer", "description": "frames whose messages share it were fused in one "
+                         "filter update"},
          "coarse": {"type": "array", "items": _NUMBER, "minItems": 3, "maxItems": 3,
                     "description": "coarse pose (x, y, phi) the localization started from"},
          "coarse_cov": {"type": "array", "items": _NUMBER, "minItems": 9, "maxItems": 9},
@@ -600,9 +602,11 @@ def planes_message(t: float, camera: str, reports: Iterable[Any], *, frame_numbe
                    method: Optional[str] = None, coarse: Any = None, coarse_cov: Any = None,
                    status: Optional[str] = None, accepted: Optional[Iterable[str]] = None,
                    rejected: Optional[Iterable[Sequence[str]]] = None,
-                   measurements: Optional[Iterable[PlaneMeasurement]] = None) -> Dict[str, Any]:
+                   measurements: Optional[Iterable[PlaneMeasurement]] = None,
+                   fusion_step: Optional[int] = None) -> Dict[str, Any]:
     """``/planes`` for one camera frame, from ``PlaneReport`` objects (robot.localization.localizer) or
-    their ``to_json()`` mappings. The keyword fields are what replay needs; the live view leaves them out."""
+    their ``to_json()`` mappings. The keyword fields are what replay needs; the live view leaves them out.
+    ``fusion_step``: frames whose messages share it were fused in one filter update (replay does the same)."""
     msg: Dict[str, Any] = {"t": float(t), "camera": str(camera), "planes": [_plane_report(r) for r in reports]}
     if frame_number is not None:
         msg["frame_number"] = int(frame_number)
@@ -620,6 +624,8 @@ def planes_message(t: float, camera: str, reports: Iterable[Any], *, frame_numbe
         msg["rejected"] = [[str(v) for v in r] for r in rejected]
     if measurements is not None:
         msg["measurements"] = [measurement_json(m) for m in measurements]
+    if fusion_step is not None:
+        msg["fusion_step"] = int(fusion_step)
     return msg
 
 

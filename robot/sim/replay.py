@@ -117,7 +117,11 @@ def replay(path, robot: Optional[RobotConfig] = None, plane_map: Optional[PlaneM
     core = ControllerCore(robot, vision=True)
     localizer = Localizer(robot, plane_map)
     ticks = robot.chassis.ticks_per_rev
-    for _, topic, msg in events:
+    skip = 0
+    for i, (_, topic, msg) in enumerate(events):
+        if skip:  # fused with the message before it (one fusion step of the app)
+            skip -= 1
+            continue
         if topic == ms.TOPIC_STATUS:
             core.set_pose(msg["t"], msg["x"], msg["y"], msg["phi"], np.array(msg["cov"], float).reshape(3, 3))
         elif topic == ms.TOPIC_ODOMETRY and "gyro_wz" in msg:
@@ -128,26 +132,52 @@ def replay(path, robot: Optional[RobotConfig] = None, plane_map: Optional[PlaneM
             core.on_odometry(odo, quantisation_variance(ticks, odo.dt))
             report.odometry += 1
         elif topic == ms.TOPIC_PLANES:
-            frame = frames.get((msg["camera"], int(msg["frame_number"])))
-            if frame is not None:
-                cov = np.array(msg["coarse_cov"], float).reshape(3, 3)
-                frame = calibrated_frame(frame, robot.camera(frame.camera).depth_scale)  # as the app did
-                result = localizer.localize([frame], tuple(msg["coarse"]), cov, msg.get("method", "joint"))
-                report.relocalized += 1
-            elif "measurements" in msg:
-                result = _recorded_result(reader.paths[0], msg)
-                report.from_recorded_planes += 1
-            else:
-                report.missing_frames += 1
-                continue
-            fused = core.on_localization(result, msg["t"], msg["camera"])
-            report.localizations += 1
-            if sorted(fused.accepted) != sorted(msg.get("accepted", [])):
-                report.fit_mismatches.append(f"{msg['camera']} frame {msg['frame_number']}: accepted "
-                                             f"{sorted(fused.accepted)} now, {sorted(msg.get('accepted', []))} recorded")
+            group = [msg] + [m for _, _, m in _same_fusion_step(events, i, msg)]
+            results = []
+            for m in group:
+                result = _replayed_result(reader, frames, robot, localizer, m, report)
+                if result is not None:
+                    results.append((m, result))
+            fused = core.on_localizations([(result, m["t"], m["camera"]) for m, result in results])
+            report.localizations += len(results)
+            for (m, _), rep in zip(results, fused):
+                if sorted(rep.accepted) != sorted(m.get("accepted", [])):
+                    report.fit_mismatches.append(f"{m['camera']} frame {m['frame_number']}: accepted "
+                                                 f"{sorted(rep.accepted)} now, {sorted(m.get('accepted', []))} recorded")
+            skip = len(group) - 1
         elif topic == ms.TOPIC_POSE and core.initialized:
             (x, y, phi), _ = core.pose(msg["t"])
             report.poses_compared += 1
             report.max_position_diff = max(report.max_position_diff, math.hypot(x - msg["x"], y - msg["y"]))
             report.max_heading_diff = max(report.max_heading_diff, abs(math.remainder(phi - msg["phi"], 2 * math.pi)))
     return report
+
+
+def _same_fusion_step(events, i: int, msg) -> list:
+    """The /planes events right after ``events[i]`` that the app fused in the same step as ``msg``
+    (recordings before fusion steps were recorded fused every frame alone)."""
+    step = msg.get("fusion_step")
+    out = []
+    if step is None:
+        return out
+    for e in events[i + 1:]:
+        if e[1] != ms.TOPIC_PLANES or e[2].get("fusion_step") != step:
+            break
+        out.append(e)
+    return out
+
+
+def _replayed_result(reader, frames, robot, localizer, msg, report):
+    """The localization of one /planes message: redone on its recorded frame, else the recorded
+    measurements; None (counted) when neither was recorded."""
+    frame = frames.get((msg["camera"], int(msg["frame_number"])))
+    if frame is not None:
+        cov = np.array(msg["coarse_cov"], float).reshape(3, 3)
+        frame = calibrated_frame(frame, robot.camera(frame.camera).depth_scale)  # as the app did
+        report.relocalized += 1
+        return localizer.localize([frame], tuple(msg["coarse"]), cov, msg.get("method", "joint"))
+    if "measurements" in msg:
+        report.from_recorded_planes += 1
+        return _recorded_result(reader.paths[0], msg)
+    report.missing_frames += 1
+    return None
