@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -144,3 +145,23 @@ def test_safety_config_refuses_values_that_disable_it():
                 {"min_height": 2.0}, {"guarded_sectors_deg": ((10.0, 5.0),)}):
         with pytest.raises(ValueError):
             SafetyConfig(**bad)
+
+
+def test_a_scan_from_the_raw_depth_units_is_the_scan_from_metres():
+    """The app scans each frame from its raw units (only the sampled pixels converted): the same
+    obstacle points, wall explanations, blindness and memory as from the frame in metres."""
+    scene = SimScene(ARENA, clutter=[Box(1.0, 0.75, 0.3, 0.5, 1.75)])
+    stops = [ProtectiveStop(SafetyConfig(), ROBOT, ARENA), ProtectiveStop(SafetyConfig(), ROBOT, ARENA)]
+    rng = np.random.default_rng(5)
+    for k, pose in enumerate([(0.5, 0.6, 0.2), (0.55, 0.62, 0.25), (0.6, 0.64, 0.3)]):
+        for cam in ROBOT.cameras:
+            f = render_depth_frame(ROBOT, scene, cam.name, pose, rng=rng, noise=DepthNoise())
+            f = replace(f, t_capture=1.0 + 0.1 * k)
+            assert f.depth.dtype == np.uint16
+            a = stops[0].update_scan(cam.name, f.t_capture, f.depth_m(), f.K, pose)
+            b = stops[1].update_scan_frame(f, pose)
+            assert np.array_equal(a.points_xy, b.points_xy) and len(a.points_xy) > 20
+            assert a.near_blind == b.near_blind
+    assert np.array_equal(stops[0].memory[0], stops[1].memory[0]) and len(stops[0].memory[0]) > 20
+    assert stops[0].limit(1.2, (0.3, 0.0, 0.0), (0.6, 0.64, 0.3)) == stops[1].limit(1.2, (0.3, 0.0, 0.0),
+                                                                                    (0.6, 0.64, 0.3))

@@ -544,7 +544,7 @@ class RobotApp:
 
     def _scan_obstacles(self, frame, pose) -> None:
         try:
-            self.core.safety.update_scan(frame.camera, frame.t_capture, frame.depth_m(), frame.K, pose)
+            self.core.safety.update_scan_frame(frame, pose)
         except Exception as e:  # a bad frame must not kill the worker; its camera's scan just ages out
             log.warning("camera %s frame %d: obstacle scan failed: %s", frame.camera, frame.frame_number, e)
 

@@ -280,7 +280,7 @@ class _PathRun:
             return True
         pose, P = self.core.coarse_pose(t) if self.core.initialized else (None, None)
         for f in frames:  # the protective stop sees every frame, with or without vision fusion
-            self.core.safety.update_scan(f.camera, t, f.depth_m(), f.K, pose)
+            self.core.safety.update_scan(f.camera, t, f.depth, f.K, pose, float(f.depth_scale))
         if self.localizer is not None and self.core.relocalization_due(t):
             self._relocalize(t, frames)
         if self.localizer is not None and self.core.initialized:
