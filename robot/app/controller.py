@@ -184,7 +184,7 @@ class RobotApp:
         t = time.monotonic()
         self.core.set_pose(t, *pose, cov)
         self.core.recovery.pose_set_by_operator(t)  # the next views must confirm it
-        self._record("status", t, channels.set_pose_message(t, pose[0], pose[1], pose[2], cov, source))
+        self._record("status", t, functools.partial(channels.set_pose_message, t, pose[0], pose[1], pose[2], cov, source))
         log.info("pose set to (%.3f, %.3f, %.1f deg) by %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     def stall_control_loop(self, seconds: float) -> None:
@@ -299,7 +299,7 @@ class RobotApp:
         if source.startswith("saved pose"):
             self.core.recovery.start_from_saved_pose(t)  # the robot may have been moved while off
         self.core.set_pose(t, *pose, cov)
-        self._record("status", t, channels.set_pose_message(t, pose[0], pose[1], pose[2], cov, source))
+        self._record("status", t, functools.partial(channels.set_pose_message, t, pose[0], pose[1], pose[2], cov, source))
         log.info("initial pose (%.3f, %.3f, %.1f deg) from %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     async def _shutdown(self, tasks: List[asyncio.Task]) -> None:
@@ -359,7 +359,7 @@ class RobotApp:
             log.debug("camera %s: gyro sample refused: %s", camera.name, e)
             return
         self.core.on_gyro(sample.t, wz, GYRO_VARIANCE)
-        self._record("odometry", sample.t, channels.gyro_message(sample.t, wz, GYRO_VARIANCE, camera.name))
+        self._record("odometry", sample.t, functools.partial(channels.gyro_message, sample.t, wz, GYRO_VARIANCE, camera.name))
 
     def _camera_state_threadsafe(self, name: str, state: CameraState) -> None:
         try:
@@ -396,7 +396,8 @@ class RobotApp:
             self.stats.odometry += 1
             self.core.on_odometry(odo, quantisation_variance(self.robot.chassis.ticks_per_rev, odo.dt))
             self.odom.update(odo)
-            self._record("odometry", odo.t, channels.odometry_message(odo.t, odo.speeds, odo.angles, odo.dt, odo.t_board))
+            self._record("odometry", odo.t, functools.partial(channels.odometry_message, odo.t, odo.speeds, odo.angles,
+                                                              odo.dt, odo.t_board))
 
     async def _localization_task(self) -> None:
         """The frames of all cameras are handled as one set: one hop to the worker (obstacle scans
@@ -441,7 +442,7 @@ class RobotApp:
             for (frame, ((x, y, phi), P), result), report in zip(done, reports):
                 name = frame.camera
                 # everything replay needs to redo this localization bit for bit, and what it gave
-                self._record("planes", frame.t_capture, channels.planes_message(
+                self._record("planes", frame.t_capture, functools.partial(channels.planes_message,
                     frame.t_capture, name, result.planes, frame_number=frame.frame_number, method=self.options.method,
                     coarse=(x, y, phi), coarse_cov=P, status=result.status, accepted=report.accepted,
                     rejected=report.rejected, measurements=result.measurements, fusion_step=self._fusion_steps))
@@ -525,7 +526,7 @@ class RobotApp:
             if res.verdict == "unique":
                 h = res.hypotheses[0]
                 self.core.set_pose(t_frames, h.x, h.y, h.phi, np.asarray(h.cov, float))
-                self._record("status", t_frames, channels.set_pose_message(t_frames, h.x, h.y, h.phi,
+                self._record("status", t_frames, functools.partial(channels.set_pose_message, t_frames, h.x, h.y, h.phi,
                                                                            np.asarray(h.cov, float), "relocalization"))
                 log.info("relocalized at (%.3f, %.3f, %.1f deg) from %d view(s); confirming", h.x, h.y,
                          math.degrees(h.phi), len(views))
@@ -589,8 +590,9 @@ class RobotApp:
             self.stats.commands_withheld += 1
         self._watchdog.tick()  # only a control loop that ticks keeps systemd from restarting us
         c = out.command
-        self._record("cmd", t, channels.cmd_message(t, c.vx, c.vy, c.wz, out.wheels, sent=out.wheels is not None,
-                                                    state=c.state, scale=out.speed_scale, reason=out.reason))
+        self._record("cmd", t, functools.partial(channels.cmd_message, t, c.vx, c.vy, c.wz, out.wheels,
+                                                 sent=out.wheels is not None, state=c.state, scale=out.speed_scale,
+                                                 reason=out.reason))
         self.live_view.publish_cmd(t, c.vx, c.vy, c.wz, out.wheels)
         self._publish_pose(t)
         if self.options.stop_when_done and self.core.finished:
@@ -610,16 +612,16 @@ class RobotApp:
             if self.core.calibration is not None and self.calibration_store is not None:
                 self.calibration_store.save(t, self.core.calibration.to_json())
             status = self.status(t)
-            self._record("status", t, channels.status_message(t, status))
+            self._record("status", t, functools.partial(channels.status_message, t, status))
             self.live_view.publish_status(t, status)
 
     def _publish_pose(self, t: float) -> None:
         """Every control tick: the fused pose the tick used, with its quality, and the REP-105
         transforms: map -> odom corrected by it, odom -> base_link from the wheels alone."""
-        if not self.core.initialized:
-            return
+        if not self.core.initialized or not (self.recorder.active or self.live_view.active):
+            return  # nobody listens: nothing to compute
         s = self.core.status(t)  # the pose at t and the quality this tick's control step judged
-        self._record("pose", t, channels.pose_message(t, s["x"], s["y"], s["phi"], s["cov"], quality=s["quality"],
+        self._record("pose", t, functools.partial(channels.pose_message, t, s["x"], s["y"], s["phi"], s["cov"], quality=s["quality"],
                                                       reason=s["reason"]))
         self.live_view.publish_pose(t, s["x"], s["y"], s["phi"], s["cov"], s["quality"], s["reason"])
         # both transforms at the time of the newest odometry, so that they compose to the fused pose there
@@ -653,11 +655,15 @@ class RobotApp:
         cams = ", ".join(f"{k} {v}" for k, v in s["cameras"].items())
         return f"{s['quality']}{reason}; {pose}; chassis {s['chassis']}; cameras: {cams or 'none'}"
 
-    def _record(self, kind: str, t: float, message: Dict[str, object]) -> None:
-        """Record with a sequence number: replay redoes the core's calls in exactly this order."""
+    def _record(self, kind: str, t: float, message: Callable[[], Dict[str, object]]) -> None:
+        """Record with a sequence number: replay redoes the core's calls in exactly this order.
+        ``message`` builds the message: only when recording (the loop builds hundreds a second)."""
+        if not self.recorder.active:
+            return
+        msg = message()
         self._record_seq += 1
-        message["seq"] = self._record_seq
-        self.recorder.write(_TOPICS[kind], t, message)
+        msg["seq"] = self._record_seq
+        self.recorder.write(_TOPICS[kind], t, msg)
 
     def _write_config_record(self) -> None:
         """The run's config (YAML text and effective values) and map, at the start of the recording."""
