@@ -373,6 +373,20 @@ def test_unsupported_schema_is_a_clear_error(tmp_path):
 
 
 @needs_ifc
+def test_a_mangled_schema_name_is_quoted_on_one_line(tmp_path):
+    """Found by the long fuzz run: a header whose quote closes lines later put the file's next
+    lines into the error."""
+    p = tmp_path / "mangled.ifc"
+    text = ifc_text(ROOM_WALLS[:1])
+    p.write_text(text.replace("FILE_SCHEMA(('IFC4'))", "FILE_SCHEMA(('IFC4));\nENDSEC;\nDATA;\n#1=IFCX('a'))", 1))
+    assert "FILE_SCHEMA(('IFC4));" in p.read_text()
+    with pytest.raises(ConfigError) as e:
+        open_model(p)
+    assert "\n" not in str(e.value) and len(str(e.value)) < 400
+    assert "mangled.ifc: " in str(e.value)
+
+
+@needs_ifc
 def test_unreadable_and_missing_files(tmp_path):
     junk = tmp_path / "junk.ifc"
     junk.write_text("this is not STEP")

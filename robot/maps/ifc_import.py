@@ -24,6 +24,7 @@ import numpy as np
 from robot.base.errors import ConfigError
 from robot.base.files import IFC, check_regular_file, open_regular_file
 from robot.base.geometry import invert_transform, transform_points
+from robot.config.ranges import excerpt
 from robot.maps.plane_map import MapPlane, PlaneMap, make_plane
 
 if TYPE_CHECKING:  # needs shapely, which comes with the bim extra: imported where used
@@ -144,12 +145,15 @@ def open_model(path):
         model = ifcopenshell.open(str(p))
     except Exception as e:  # ifcopenshell raises SchemaError, Error or RuntimeError by version
         schema = _schema_in_header(p)
+        # A mangled header's "schema" can hold line breaks or a megabyte: errors stay one short line.
+        shown = schema if len(schema) <= 40 and schema.isprintable() else excerpt(schema, 40)
         if isinstance(e, getattr(ifcopenshell, "SchemaError", ())) or "schema" in str(e).lower():
             raise ConfigError(
-                f"{p}: IFC schema {schema or '?'} is not supported by ifcopenshell {ifcopenshell.version} "
+                f"{p}: IFC schema {shown or '?'} is not supported by ifcopenshell {ifcopenshell.version} "
                 f"(it reads {', '.join(_supported_schemas())})"
             ) from None
-        raise ConfigError(f"{p}: not a readable IFC file: {e}") from None
+        why = " ".join(str(e).split())
+        raise ConfigError(f"{p}: not a readable IFC file: {why if len(why) <= 200 else why[:197] + '...'}") from None
     return model
 
 
