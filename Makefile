@@ -11,6 +11,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[test,realsense,viz,record,live]"
 	$(PY) -m pip install -q -e ".[bim]" || echo "note: ifcopenshell is not installable for this Python; IFC import tests will skip"
+	$(PY) -m pip install -q -e ".[perf]" || echo "note: numba is not installable for this Python; the plane fit runs its numpy code and the kernel tests skip"
 	touch $(STAMP)
 
 run: $(STAMP)

@@ -252,6 +252,7 @@ HOOKS = [
     ("robot.localization.localizer", "fit_plane", "fit: subsample, gates, plane covariance"),
     ("robot.localization.plane_fit", "identify", "hypothesis search (surfaces, scores, refinement)"),
     ("robot.localization.plane_fit", "_solve_step", "refit (weighted least squares)"),
+    ("robot.localization.fit_kernels", "refit_stages", "refit (weighted least squares)"),
     ("robot.localization.plane_fit", "_quantisation_cov", "fit: subsample, gates, plane covariance"),
     ("robot.localization.localizer", "Localizer._rival_plane", "rival-wall check"),
     ("robot.localization.localizer", "Localizer._observation", "measurement error model"),
@@ -334,13 +335,18 @@ class StepProfiler:
 def localizer_steps(quick: bool) -> Dict[str, Any]:
     """Per-step CPU of the localizer, plain and hooked runs interleaved, plus a cProfile top list
     and the per-call cost that no point count reduces."""
+    from robot.localization import fit_kernels
+
+    kernels = kernel_load_times()  # first: compiling must not find numba's cache warm
     robot, arena = robot_and_map()
     sets = frame_sets(2 if quick else 6)
     reps = 4 if quick else 25
     loc = Localizer(robot, arena)
+    compiled = fit_kernels.backend() == "numba"
     prof = StepProfiler()
     cases = [(n, case) for n in (1, 2) for case in (TRACKING, COLD)]
     plain: Dict[int, List[float]] = {i: [] for i in range(len(cases))}
+    fallback: Dict[int, List[float]] = {i: [] for i in range(len(cases))}  # the numpy code, when numba runs
     hooked: Dict[int, List[float]] = {i: [] for i in range(len(cases))}
     steps: Dict[int, Dict[str, List[float]]] = {i: {} for i in range(len(cases))}
     passes: Dict[int, List[int]] = {i: [] for i in range(len(cases))}
@@ -355,6 +361,10 @@ def localizer_steps(quick: bool) -> Dict[str, Any]:
                 coarse, cov = coarse_for(truth, case)
                 dt, res = cpu_of(loc.localize, frames[:n], coarse, cov)
                 plain[i].append(dt * 1e3)
+                if compiled:
+                    fit_kernels.set_backend("numpy")
+                    fallback[i].append(cpu_of(loc.localize, frames[:n], coarse, cov)[0] * 1e3)
+                    fit_kernels.set_backend("numba")
                 passes[i].append(res.passes)
                 ok[i].append(res.status in FIX_STATUSES)
                 with prof.installed():
@@ -369,11 +379,37 @@ def localizer_steps(quick: bool) -> Dict[str, Any]:
     out_cases = []
     for i, (n, case) in enumerate(cases):
         out_cases.append({"frames": n, "case": case[0], "ms": median(plain[i]), "p95": p95(plain[i]),
+                          "numpy_ms": median(fallback[i]) if fallback[i] else None,
                           "hooked_ms": median(hooked[i]), "passes": float(np.mean(passes[i])),
                           "ok": f"{sum(ok[i])}/{len(ok[i])}",
                           "steps": {s: median(v) for s, v in steps[i].items()}})
-    return {"cases": out_cases, "missing_hooks": prof.missing, "first_call_ms": median(first),
+    return {"cases": out_cases, "missing_hooks": prof.missing, "first_call_ms": median(first), "kernels": kernels,
             "profile": profile_top(loc, sets, 3 if quick else 10), "scaling": point_scaling(sets, reps)}
+
+
+def kernel_load_times() -> Dict[str, Any]:
+    """The plane fit's backend, and what loading its kernels costs: compiling them into an empty
+    cache (a first start) and loading them from it (every later start, in a fresh process)."""
+    import tempfile
+
+    from robot.localization import fit_kernels
+
+    cache = tempfile.mkdtemp(prefix="bench-numba-")
+    os.environ["NUMBA_CACHE_DIR"] = cache  # before numba is imported (by backend())
+    out: Dict[str, Any] = {"backend": fit_kernels.backend(), "note": fit_kernels.backend_note()}
+    if out["backend"] != "numba":
+        return out
+    import numba
+
+    out["numba"] = numba.__version__
+    out["compile_s"] = fit_kernels.warm_up()
+    probe = ("import time; t0 = time.perf_counter(); from robot.localization import fit_kernels; "
+             "s = fit_kernels.warm_up(); print(time.perf_counter() - t0, s)")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_CACHE_DIR=cache)
+    p = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=300)
+    if p.returncode == 0 and p.stdout.split():
+        out["cached_total_s"], out["cached_s"] = (float(v) for v in p.stdout.split()[-2:])
+    return out
 
 
 def profile_top(loc: Localizer, sets, reps: int, top: int = 12) -> Dict[str, Any]:
@@ -1138,6 +1174,9 @@ def report_localizer(r: Dict[str, Any], m_here: Dict[str, float]) -> List[str]:
     lines.append("| **total with hooks** | " + " | ".join(f"**{_f(c['hooked_ms'])}**" for c in r["cases"]) + " |")
     lines.append("| **total, no hooks (median / p95)** | "
                  + " | ".join(f"**{_f(c['ms'])}** / {_f(c['p95'])}" for c in r["cases"]) + " |")
+    if any(c.get("numpy_ms") for c in r["cases"]):
+        lines.append("| total with the numpy code (`ROBOT_KERNELS=numpy`), no hooks | "
+                     + " | ".join(_f(c.get("numpy_ms")) for c in r["cases"]) + " |")
     lines.append("| Nano estimate, no hooks (x5 / x8) | " + " | ".join(nano(c["ms"], m) for c in r["cases"]) + " |")
     lines.append("| passes (mean), full fixes (ok or unprotected) | "
                  + " | ".join(f"{c['passes']:.2f}, {c['ok']}" for c in r["cases"]) + " |")
@@ -1146,6 +1185,15 @@ def report_localizer(r: Dict[str, Any], m_here: Dict[str, float]) -> List[str]:
         lines.append("Hooks not found (the localizer changed; their time is in the step that calls them): "
                      + ", ".join(f"`{h}`" for h in r["missing_hooks"]) + ".")
         lines.append("")
+    k = r.get("kernels", {})
+    if k.get("backend") == "numba":
+        lines.append(f"Plane-fit kernels: numba {k['numba']} ({k['note']}); compiling them into an empty cache took "
+                     f"{k['compile_s']:.1f} s (a first start), loading them from the cache in a fresh process "
+                     f"{_f(k.get('cached_s'), '{:.2f}')} s ({_f(k.get('cached_total_s'), '{:.2f}')} s with importing "
+                     "numba and the module). The numpy row alternates with the kernels' runs.")
+    elif k:
+        lines.append(f"Plane-fit kernels: {k.get('note') or k.get('backend')}.")
+    lines.append("")
     sc = r["scaling"]
     lines.append(f"First call of a new `Localizer` (2 frames, tracking): {_f(r['first_call_ms'])} ms. "
                  f"CPU against ROI points (2 frames, tracking; pixel strides {', '.join(map(str, sc['strides']))}: "

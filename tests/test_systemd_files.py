@@ -62,6 +62,10 @@ def test_unit_declares_the_service_contract():
     assert svc["NoNewPrivileges"] == "yes" and svc["PrivateTmp"] == "yes"
     assert set(svc["ReadWritePaths"].split()) == {"/var/lib/robot-controller", "/var/log/robot-controller"}
     assert "OPENBLAS_CORETYPE=ARMV8" in " ".join(unit_values("Service", "Environment")).split()
+    # the compiled kernels are cached where the service may write: its state directory
+    cache = [v.split("=", 1)[1] for v in " ".join(unit_values("Service", "Environment")).split()
+             if v.startswith("NUMBA_CACHE_DIR=")]
+    assert cache and cache[0].startswith("/var/lib/" + unit_values("Service", "StateDirectory")[0] + "/")
     assert svc["ExecStart"].split() == [
         "/opt/robot-controller/venv/bin/robotctl", "run", "--config", "/etc/robot-controller/robot.yaml",
         "--state-dir", "/var/lib/robot-controller"]

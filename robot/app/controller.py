@@ -210,6 +210,8 @@ class RobotApp:
             self.recorder.set_depth_budget(self.robot.recording.depth_max_mbit_s)
             self.live_view.set_depth_budget(self.robot.recording.live_depth_max_mbit_s)
             self._write_config_record()
+            if self.localizer is not None and not await self._warm_up_kernels():
+                return 1
             self._init_pose()
             for cam in self.cameras:
                 self._slots[cam.name] = None
@@ -245,6 +247,22 @@ class RobotApp:
             return 0
         finally:
             await self._shutdown(tasks)
+
+    async def _warm_up_kernels(self) -> bool:
+        """Compile the plane fit's kernels (numba, when installed), or load them from the cache,
+        before the first frame: the first start compiles for seconds (tens on a Nano), which must
+        not fall on the localization of a moving robot."""
+        from robot.localization import fit_kernels
+
+        sd_notify.status("starting: loading the plane-fit kernels (the first start compiles them)")
+        try:
+            seconds = await self._loop.run_in_executor(self._executor, fit_kernels.warm_up)
+        except Exception as e:  # ROBOT_KERNELS=numba and they do not compile: the operator asked for them
+            self.exit_reason = f"plane-fit kernels: {type(e).__name__}: {e}".splitlines()[0]
+            log.error("%s", self.exit_reason)
+            return False
+        log.info("plane-fit kernels: %s; ready in %.1f s", fit_kernels.backend_note(), seconds)
+        return True
 
     async def _connect_chassis(self) -> bool:
         t0 = time.monotonic()

@@ -1,6 +1,8 @@
 """Plane fit with the predicted map plane as a prior: which surface in the ROI is the wall, and
 its maximum-likelihood plane (docs/localization-integrity.md, docs/architecture.md 'Plane fit').
-Pure numpy.
+Pure numpy; its hot parts (the refit, the hypothesis scoring, the behind-the-surface counts,
+the covariance and the inlier summary) also run as compiled kernels, fit_kernels (numba, when it
+is installed), which agree with the numpy code here: the reference.
 
 Identification does not depend on luck. Every planar surface of the ROI is found in turn
 (sequential RANSAC on a fixed subsample: each round draws hypotheses from the points no surface
@@ -45,6 +47,8 @@ from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
 import numpy as np
+
+from robot.localization import fit_kernels
 
 # A stage stops after a solve that moved the plane by under five standard deviations
 # (step^T H step < 25): the problem is linear, so a solve lands on the optimum for its inlier
@@ -292,6 +296,13 @@ def _score(sub: _Subsample, nh: np.ndarray, dh: np.ndarray, cols: Optional[np.nd
     return np.count_nonzero(err < nr, axis=1)
 
 
+def _count_inliers(sub: _Subsample, nh: np.ndarray, dh: np.ndarray, cols: Optional[np.ndarray]) -> np.ndarray:
+    """:func:`_score`, compiled when the kernels are."""
+    if fit_kernels.backend() == "numba":
+        return fit_kernels.score(nh, dh, sub.rays32, sub.z32, sub.thr32, cols)
+    return _score(sub, nh, dh, cols)
+
+
 def _band(sub: _Subsample, q: np.ndarray, params: FitParams) -> np.ndarray:
     """Subsample points within the inlier band of the plane q (as _solve_step draws it)."""
     yp = sub.rx * q[0] + sub.ry * q[1] + q[2]
@@ -343,12 +354,12 @@ def _find_surfaces(sub: _Subsample, params: FitParams) -> List[_Surface]:
             break
         cols = None if len(pool) == m else pool
         nh, dh = _global_hypotheses(sub, pool, params.iterations)
-        score = _score(sub, nh, dh, cols) if len(dh) else np.zeros(0, np.intp)
+        score = _count_inliers(sub, nh, dh, cols) if len(dh) else np.zeros(0, np.intp)
         if len(dh) == 0 or 2 * int(score.max()) < len(pool):
             # No surface holds most of what is left: add local hypotheses.
             nl, dl = _local_hypotheses(sub, pool, params.iterations)
             nh, dh = np.vstack([nh, nl]), np.concatenate([dh, dl])
-            score = np.concatenate([score, _score(sub, nl, dl, cols)]) if len(dl) else score
+            score = np.concatenate([score, _count_inliers(sub, nl, dl, cols)]) if len(dl) else score
         if len(dh) == 0:
             break
         best = int(score.argmax())
@@ -380,7 +391,19 @@ def _tilt(up: Optional[np.ndarray], n: np.ndarray, n_pred: np.ndarray) -> float:
 def _behind(sub: _Subsample, n: np.ndarray, d: float, pi_pred: np.ndarray, params: FitParams) -> float:
     """Share of the subsample lying behind the plane (n, d) by more than the margin, where the
     prior could still put the wall."""
-    return _behind_points(sub.rx, sub.ry, sub.z, n, d, pi_pred, params, params.rear_fraction)
+    return _behind_share(sub.rx, sub.ry, sub.z, 1, n, d, pi_pred, params, params.rear_fraction)
+
+
+def _behind_share(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, stride: int, n: np.ndarray, d: float,
+                  pi_pred: np.ndarray, params: FitParams, matters: float) -> float:
+    """:func:`_behind_points` of every stride-th point; its first pass compiled when the kernels are
+    (the rest, for a share that matters, is rare)."""
+    if fit_kernels.backend() == "numba":
+        m = max(-(-len(z) // stride), 1)
+        count = fit_kernels.behind_count(rx, ry, z, stride, n, d, params)
+        if count < matters * m:
+            return float(count) / m
+    return _behind_points(rx[::stride], ry[::stride], z[::stride], n, d, pi_pred, params, matters)
 
 
 def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, pi_pred: np.ndarray,
@@ -534,7 +557,7 @@ def _rear_most_dense(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarra
                      pi_pred: np.ndarray) -> Optional[str]:
     """Why the chosen surface is not the rear-most thing of the ROI on a denser sample (None: it is)."""
     k = max(1, -(-len(z) // (2 * params.sample)))
-    b = _behind_points(rx[::k], ry[::k], z[::k], n, d, pi_pred, params, params.rear_fraction_dense)
+    b = _behind_share(rx, ry, z, k, n, d, pi_pred, params, params.rear_fraction_dense)
     if b < params.rear_fraction_dense:
         return None
     return (f"{100 * b:.1f} % of the ROI lies behind the rear-most surface the prior admits "
@@ -553,7 +576,6 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     N = len(z)
     if N < max(params.min_inliers, 3):
         return PlaneFit(False, f"too few ROI points ({N} < {params.min_inliers})")
-    stages = []
     n_pred, d_pred = pi_pred[:3], float(pi_pred[3])
     up = None if params.up is None else np.asarray(params.up, float)
     if start is not None:
@@ -568,23 +590,17 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
         if ident.surface is None:
             return PlaneFit(False, ident.reason, evidence=ident.evidence, surfaces=surfaces)
         n, d = ident.surface.n, ident.surface.d
-    if start is None:
-        # Solve on every k-th point, then on all points: each stage starts within a few of its
-        # own standard deviations, so its band is nearly final and one or two solves suffice;
-        # the full set's last solve gives the information.
-        k = N // (4 * params.sample)
-        if k >= 2:
-            stages.append((rx[::k], ry[::k], 1.0 / z[::k]))
+    # Solve on every k-th point, then on all points: each stage starts within a few of its own
+    # standard deviations, so its band is nearly final and one or two solves suffice; the full
+    # set's last solve gives the information.
+    k = N // (4 * params.sample) if start is None else 0
     y = 1.0 / z
-    stages.append((rx, ry, y))
     q = -n / d
-    for i, (sx, sy, sinv) in enumerate(stages):
-        last = i == len(stages) - 1
-        for _ in range(STAGE_ITERATIONS):
-            step, H, mask, chi2, shift = _solve_step(sx, sy, sinv, q, params, last and params.depth_unit > 0)
-            q = q + step
-            if step @ H @ step < CONVERGED:
-                break
+    if fit_kernels.backend() == "numba":
+        q, H, mask, chi2, shift = fit_kernels.refit_stages(rx, ry, y, q, k, params, params.depth_unit > 0, CONVERGED,
+                                                           STAGE_ITERATIONS)
+    else:
+        q, H, mask, chi2, shift = _refit(rx, ry, y, q, k, params)
     count = int(mask.sum())
     qn = math.sqrt(float(q @ q))
     n, d = -q / qn, 1.0 / qn
@@ -612,37 +628,53 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     # Information over (theta1, theta2, d), the normal turned towards e1, e2 and the offset:
     # q = -n / d moves by dq = -(theta1 e1 + theta2 e2) / d + n dd / d^2.
     B = _tangent_basis(n)
-    Jq = np.column_stack([-B[0] / d, -B[1] / d, n / (d * d)])
     chi2_red = chi2 / max(count - 3, 1)
-    try:
-        Hi = np.linalg.inv(H)
-        Jqi = np.linalg.inv(Jq)
-    except np.linalg.LinAlgError:
-        return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
     # More scatter than the noise model predicts (calibration, unmodelled noise) widens the
     # covariance; less never narrows it below the model.
-    cov = Jqi @ Hi @ Jqi.T * max(chi2_red, 1.0)
+    compiled = fit_kernels.backend() == "numba"
+    if compiled:
+        inverses = fit_kernels.plane_cov(H, B, n, d, max(chi2_red, 1.0))
+        if inverses is None:
+            return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
+        Hi, Jqi, cov = inverses
+    else:
+        Jq = np.column_stack([-B[0] / d, -B[1] / d, n / (d * d)])
+        try:
+            Hi = np.linalg.inv(H)
+            Jqi = np.linalg.inv(Jq)
+        except np.linalg.LinAlgError:
+            return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
+        cov = Jqi @ Hi @ Jqi.T * max(chi2_red, 1.0)
     if shift is not None:
         cov += _quantisation_cov(rx, ry, shift[0], shift[1], Hi, Jqi, params)
-    info = np.linalg.inv(cov)
+    info = fit_kernels.inverse(cov) if compiled else np.linalg.inv(cov)
     # What the inliers look like (every k-th of them): where they are, how deep, how wide.
-    sl = slice(None, None, max(1, N // (2 * params.sample)))
-    m_s = mask[sl]
-    zs = z[sl][m_s]
-    P_in = np.vstack([rx[sl][m_s] * zs, ry[sl][m_s] * zs, zs])
-    k_in = P_in.shape[1]
-    centroid = P_in.sum(axis=1) / k_in
-    z2 = float(zs @ zs) / k_in
+    k_sl = max(1, N // (2 * params.sample))
     if up is not None:
         h = unit(cross(up, n))
     else:
         h = B[0]
     v = cross(n, h)
-    a, b = h @ P_in, v @ P_in
-    lateral = math.sqrt(max(float(a @ a) / k_in - (float(a.sum()) / k_in) ** 2, 0.0))
-    vertical = math.sqrt(max(float(b @ b) / k_in - (float(b.sum()) / k_in) ** 2, 0.0))
-    # (A surface kept from the last pass was checked there, on an overlapping ROI.)
-    why = _not_flat(P_in, a, n, d, z2, params) if start is None else None
+    # (A surface kept from the last pass was checked for flatness there, on an overlapping ROI.)
+    if compiled:
+        k_in, sums, halves = fit_kernels.inlier_summary(rx, ry, z, mask, k_sl, h, v, n, d, start is None)
+        centroid = sums[:3] / k_in
+        z2 = float(sums[3]) / k_in
+        sa, saa, sb, sbb = float(sums[4]), float(sums[5]), float(sums[6]), float(sums[7])
+        why = None if halves is None else _flat_verdict(*halves, n, z2, params)
+    else:
+        sl = slice(None, None, k_sl)
+        m_s = mask[sl]
+        zs = z[sl][m_s]
+        P_in = np.vstack([rx[sl][m_s] * zs, ry[sl][m_s] * zs, zs])
+        k_in = P_in.shape[1]
+        centroid = P_in.sum(axis=1) / k_in
+        z2 = float(zs @ zs) / k_in
+        a, b = h @ P_in, v @ P_in
+        sa, saa, sb, sbb = float(a.sum()), float(a @ a), float(b.sum()), float(b @ b)
+        why = _not_flat(P_in, a, n, d, z2, params) if start is None else None
+    lateral = math.sqrt(max(saa / k_in - (sa / k_in) ** 2, 0.0))
+    vertical = math.sqrt(max(sbb / k_in - (sb / k_in) ** 2, 0.0))
     if why is not None:
         return PlaneFit(False, why, n, d, count, angle_to_prediction=ang, offset_to_prediction=off, surfaces=surfaces)
     if up is not None:
@@ -681,6 +713,13 @@ def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: 
     cnt = np.bincount(side, minlength=2).astype(float)
     sa, sr = np.bincount(side, a, 2), np.bincount(side, res, 2)
     saa, sar = np.bincount(side, a * a, 2), np.bincount(side, a * res, 2)
+    return _flat_verdict(cnt, sa, sr, saa, sar, n, z2, params)
+
+
+def _flat_verdict(cnt: np.ndarray, sa: np.ndarray, sr: np.ndarray, saa: np.ndarray, sar: np.ndarray, n: np.ndarray,
+                  z2: float, params: FitParams) -> Optional[str]:
+    """:func:`_not_flat` from its sums per half (2,) each: the count, and the sums of a, the
+    residual r, a^2 and a r, with a the position along the wall from the median."""
     if cnt.min() < 20:
         return None
     var = saa / cnt - (sa / cnt) ** 2
@@ -699,6 +738,24 @@ def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: 
     return (f"not one flat surface: its two halves along the wall turn {math.degrees(turn):.1f} deg against each "
             f"other (at most {math.degrees(allowed):.1f} deg for one wall): another surface meets it at a small angle "
             "(a door swung back, a leaning board)")
+
+
+def _refit(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, q: np.ndarray, stride: int, params: FitParams):
+    """The refit of plane q on points with rays (rx, ry) and inverse depths y: with ``stride`` >= 2
+    first on every stride-th point, then on all, each stage a few :func:`_solve_step` until one
+    moves the plane by under ``CONVERGED``. Returns the final q and the last solve's (H, inlier
+    mask, chi2, shift), the shift arrays when the frame has a depth unit. The reference of
+    fit_kernels.refit_stages."""
+    stages = [(rx[::stride], ry[::stride], y[::stride])] if stride >= 2 else []
+    stages.append((rx, ry, y))
+    for i, (sx, sy, sinv) in enumerate(stages):
+        last = i == len(stages) - 1
+        for _ in range(STAGE_ITERATIONS):
+            step, H, mask, chi2, shift = _solve_step(sx, sy, sinv, q, params, last and params.depth_unit > 0)
+            q = q + step
+            if step @ H @ step < CONVERGED:
+                break
+    return q, H, mask, chi2, shift
 
 
 def _solve_step(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, q: np.ndarray, params: FitParams,

@@ -1,0 +1,535 @@
+"""Compiled kernels for the plane fit's hot loops, and the choice between them and numpy.
+
+The plane fit (:mod:`robot.localization.plane_fit`) spends its time in many small numpy calls on
+a few thousand points or on 3 x 3 matrices: the per-call overhead, not the arithmetic, is their
+cost. Here each of those parts is one numba-compiled function:
+
+* the refit: every stage and iteration of the weighted least squares in inverse depth
+  (``plane_fit._refit`` over ``_solve_step``);
+* the hypothesis scoring of identification (``plane_fit._score``);
+* the share of points behind a surface (the first pass of ``plane_fit._behind_points``);
+* the plane's covariance from the normal equations (three 3 x 3 inverses and products);
+* the inlier summary (centroid, depth, spread) and ``plane_fit._not_flat``'s half-patch sums.
+
+The numpy code in ``plane_fit`` stays the reference and the fallback. The kernels repeat its
+arithmetic operation for operation, so they agree with it to the rounding of its sums and
+matrix products (1e-15 relative, a 3 x 3 inverse to its condition number times that), a mask
+differs only for a point exactly on a band edge, and counts are the same:
+
+* fastmath is off: elementwise expressions round exactly as numpy's (no reassociation, no
+  contraction into fused multiply-adds);
+* scoring is float32 like numpy's, and its one matrix product (BLAS sgemm, which on most machines
+  chains fused multiply-adds) is rounded as the BLAS in use rounds it: a probe at load time
+  tells a fused chain from separate products and sums (:func:`backend_note` says which, and if
+  neither reproduces it exactly);
+* 3 x 3 systems are solved by LU with partial pivoting, as LAPACK's gesv does, and a singular one
+  is reported where numpy raises LinAlgError.
+
+The kernels release the GIL (``nogil``), so the localization thread runs beside the event loop.
+
+Backend: the environment variable ``ROBOT_KERNELS``, read at the first :func:`backend` call:
+``auto`` (the default: numba if it imports, else numpy), ``numba`` (a RuntimeError if numba is
+missing) or ``numpy``. numba is imported only then, never by importing this module.
+
+Compiled code is cached on disk (``cache=True``) where ``NUMBA_CACHE_DIR`` says; numba reads that
+variable when it is imported, so it must be set before the first :func:`backend` or
+:func:`warm_up` call. The service sets it to its state directory (the installed package's folder
+may not be writable), and calls :func:`warm_up` at start-up: that compiles the kernels the first
+time (4 s with numba 0.58, 7 s with 0.68 on the development machine; expect 5 to 8 times that on
+the Nano) and loads them from the cache afterwards (0.2 s, plus 0.2 s to import numba).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
+
+import numpy as np
+
+if TYPE_CHECKING:  # plane_fit imports this module
+    from robot.localization.plane_fit import FitParams
+
+ENV = "ROBOT_KERNELS"
+BACKENDS = ("auto", "numba", "numpy")
+
+_backend: Optional[str] = None  # "numba" or "numpy" once resolved
+_requested = "auto"  # what was asked for: only "auto" falls back to numpy when compiling fails
+_note = ""  # how the backend was chosen, for the start-up log
+_nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher (compiled at its first call)
+_fused = True  # whether numpy's float32 matrix product chains fused multiply-adds (probed)
+_probe_exact = True  # ... and whether the kernel then rounds exactly as it does
+_NO_COLS = np.zeros(0, np.intp)
+
+
+def backend() -> str:
+    """The backend in use, "numba" or "numpy" (resolved from ``ROBOT_KERNELS`` on first use)."""
+    if _backend is None:
+        set_backend(None)
+    return _backend  # type: ignore[return-value]
+
+
+def backend_note() -> str:
+    """One line on how the backend was chosen (why numpy, when numba was not available)."""
+    backend()
+    return _note
+
+
+def set_backend(name: Optional[str]) -> str:
+    """Choose the backend: "auto", "numba" or "numpy" (None: from ``ROBOT_KERNELS``, default auto).
+    Returns the one in use. Raises RuntimeError for an unknown name, or for "numba" without numba."""
+    global _backend, _note, _requested
+    source = "argument"
+    if name is None:
+        name, source = os.environ.get(ENV, "auto").strip().lower() or "auto", ENV
+    if name not in BACKENDS:
+        raise RuntimeError(f"{source} {name!r}: the plane fit's kernel backend must be one of {', '.join(BACKENDS)}")
+    if name == "numpy":
+        _backend, _note, _requested = "numpy", f"numpy ({source} says numpy)", name
+        return _backend
+    try:
+        _load()
+    except ImportError as e:
+        why = (str(e).splitlines() or [type(e).__name__])[0]
+        if name == "numba":
+            raise RuntimeError(f"{source} asks for the plane fit's numba kernels, but numba does not import ({why}): "
+                               "install the perf extra (pip install -e '.[perf]') or set ROBOT_KERNELS=numpy") from None
+        _backend, _note, _requested = "numpy", f"numpy (numba does not import: {why})", name
+        return _backend
+    _backend, _requested = "numba", name
+    _note = (f"numba {_nb['version']} (numpy's float32 matrix product {'fused' if _fused else 'unfused'}"
+             + ("" if _probe_exact else ", not reproduced exactly: a point at a band edge may count differently") + ")")
+    return _backend
+
+
+_KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "_inv_kernel", "_summary_kernel")
+
+
+def _load() -> None:
+    """Import numba and wrap the kernels; they compile (or load from the cache) at their first call."""
+    global _fused
+    import numba  # (each time: a test may hide it)
+
+    if _nb:
+        return
+    _fused = _probe_fused()
+    numba.extending.register_jitable(_solve3)  # called from the kernels, stays plain Python here
+    g = globals()
+    for name in _KERNELS:
+        try:
+            _nb[name] = numba.njit(cache=True, nogil=True, fastmath=False)(g[name])
+        except RuntimeError:  # no writable cache location: compile at every start rather than fail
+            _nb[name] = numba.njit(cache=False, nogil=True, fastmath=False)(g[name])
+    _nb["version"] = numba.__version__
+
+
+def warm_up() -> float:
+    """Compile the kernels, or load them from numba's cache, on tiny inputs of the types the fit
+    passes. Returns the seconds it took (0 with the numpy backend). If compiling fails, "auto"
+    falls back to numpy (:func:`backend_note` says why) and "numba" raises."""
+    global _backend, _note
+    if backend() != "numba":
+        return 0.0
+    t0 = time.perf_counter()
+    try:
+        _run_each_kernel()
+    except Exception as e:
+        if _requested == "numba":
+            raise
+        _backend, _note = "numpy", f"numpy (the numba kernels did not compile: {type(e).__name__}: {e})".split("\n")[0]
+    return time.perf_counter() - t0
+
+
+def _run_each_kernel() -> None:
+    rng = np.random.default_rng(0)
+    n = 64
+    rx, ry = rng.uniform(-0.5, 0.5, n), rng.uniform(-0.4, 0.4, n)
+    q = np.array([0.01, -0.02, 0.5])
+    y = rx * q[0] + ry * q[1] + q[2] + rng.normal(0.0, 1e-3, n)
+    z = 1.0 / y
+    _, H, mask, _, _, _ = _nb["_refit_kernel"](rx, ry, y, q, 2, 1e-6, 1e-7, True, 9.0, 0.004, 2.0, 4.0, 25.0, 4, True)
+    rays = np.ones((3, n), np.float32)
+    rays[0], rays[1] = rx, ry
+    nh = np.array([[0.0, 0.0, -1.0], [0.1, 0.0, -1.0]], np.float32)
+    _nb["_score_kernel"](nh, np.array([2.0, 2.1], np.float32), rays, z.astype(np.float32), np.full(n, 0.01, np.float32),
+                         _NO_COLS, True, _fused)
+    n_c = np.array([0.0, 0.0, -1.0])
+    _nb["_behind_kernel"](rx, ry, z, 1, n_c, 2.0, 1e-3, 1e-7, True, 0.03)
+    B = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    _nb["_cov_kernel"](H, B, n_c, 2.0, 1.0)
+    _nb["_inv_kernel"](H)
+    _nb["_summary_kernel"](rx, ry, z, mask, 1, B[0], B[1], n_c, 2.0, True)
+
+
+def _f64(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, np.float64)
+
+
+# -- the kernels' callers: plain arguments in, plane_fit's values out ------------------------------
+
+def refit_stages(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, q: np.ndarray, stride: int, params: FitParams,
+                 with_shift: bool, converged: float, iterations: int
+                 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, float, Optional[Tuple[np.ndarray, np.ndarray]]]:
+    """``plane_fit._refit``: the refit of plane q (inverse depth 1/z = q . (x/z, y/z, 1)) on
+    points with rays (rx, ry) and measured inverse depths y; with ``stride`` >= 2 first on every
+    stride-th point (from the first), then on all; each stage repeats ``_solve_step`` up to
+    ``iterations`` times and stops after a step with step^T H step < ``converged``.
+
+    Returns what the numpy loop leaves: the final q, and of the last solve the information H,
+    the inlier mask, the weighted residual sum of squares and, with ``with_shift``, the arrays
+    (w yp^2, yp), else None."""
+    c = params.noise_subpixel / params.noise_fx_b
+    # Constants computed in Python as plane_fit computes them: the same doubles.
+    q_out, H, mask, chi2, u, yp = _nb["_refit_kernel"](
+        _f64(rx), _f64(ry), _f64(y), _f64(q), int(stride), c * c, params.depth_unit**2 / 12.0, params.depth_unit > 0,
+        params.sigma_k**2, float(params.min_threshold), float(params.huber_k), params.huber_k**2, float(converged),
+        int(iterations), bool(with_shift))
+    return q_out, H, mask, chi2, ((u, yp) if with_shift else None)
+
+
+def score(nh: np.ndarray, dh: np.ndarray, rays32: np.ndarray, z32: np.ndarray, thr32: np.ndarray,
+          cols: Optional[np.ndarray]) -> np.ndarray:
+    """``plane_fit._score``: inliers of each hypothesis (normals nh (H, 3), offsets dh (H,))
+    among the points ``cols`` (None: all) of float32 rays (3, m), depths and bands."""
+    all_cols = cols is None
+    f32 = np.float32
+    return _nb["_score_kernel"](np.ascontiguousarray(nh, f32), np.ascontiguousarray(dh, f32), np.ascontiguousarray(rays32, f32),
+                                np.ascontiguousarray(z32, f32), np.ascontiguousarray(thr32, f32),
+                                _NO_COLS if all_cols else np.ascontiguousarray(cols, np.intp), all_cols, _fused)
+
+
+def behind_count(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, stride: int, n: np.ndarray, d: float,
+                 params: FitParams) -> int:
+    """How many of every stride-th point (from the first) lie behind the plane (n, d) by more
+    than the margin: ``behind`` in ``plane_fit._behind_points`` before the prior's window."""
+    return int(_nb["_behind_kernel"](_f64(rx), _f64(ry), _f64(z), int(stride), _f64(n), float(d),
+                                     params.noise_subpixel / params.noise_fx_b, params.depth_unit**2 / 12.0,
+                                     params.depth_unit > 0, float(params.behind_margin)))
+
+
+def plane_cov(H: np.ndarray, B: np.ndarray, n: np.ndarray, d: float, scale: float
+              ) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``plane_fit.fit_plane``'s covariance of (theta1, theta2, d): (H^-1, Jq^-1,
+    Jq^-1 H^-1 Jq^-T scale) with Jq = [-e1 / d, -e2 / d, n / d^2] (``B`` = (e1, e2)), or None
+    where numpy's inverse raises LinAlgError."""
+    ok, Hi, Jqi, cov = _nb["_cov_kernel"](_f64(H), _f64(B), _f64(n), float(d), float(scale))
+    return (Hi, Jqi, cov) if ok else None
+
+
+def inverse(A: np.ndarray) -> np.ndarray:
+    """np.linalg.inv of a 3 x 3 matrix (LinAlgError if it is singular)."""
+    ok, Ai = _nb["_inv_kernel"](_f64(A))
+    if not ok:
+        raise np.linalg.LinAlgError("Singular matrix")
+    return Ai
+
+
+def inlier_summary(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, mask: np.ndarray, stride: int, h: np.ndarray,
+                   v: np.ndarray, n: np.ndarray, d: float, halves: bool
+                   ) -> Tuple[int, np.ndarray, Optional[Tuple[np.ndarray, ...]]]:
+    """Sums over the inliers among every stride-th point, P = z (rx, ry, 1), a = h . P, b = v . P:
+    (their number k, [sum P (3), sum z^2, sum a, sum a^2, sum b, sum b^2], and with ``halves``
+    and k >= 40 ``plane_fit._not_flat``'s (count, sum a', sum r, sum a'^2, sum a' r) per half,
+    a' = a - median(a) and r = n . P + d, else None)."""
+    k, sums, hs = _nb["_summary_kernel"](_f64(rx), _f64(ry), _f64(z), np.ascontiguousarray(mask, np.bool_), int(stride),
+                                         _f64(h), _f64(v), _f64(n), float(d), bool(halves))
+    return int(k), sums, ((hs[0], hs[1], hs[2], hs[3], hs[4]) if halves and k >= 40 else None)
+
+
+def _probe_fused() -> bool:
+    """Whether numpy's float32 (H, 3) @ (3, m) rounds as a chain of fused multiply-adds (OpenBLAS's
+    kernels for CPUs with FMA) or as separate products and sums, on shapes like the scoring's.
+    Sets ``_probe_exact``: whether either reproduces it exactly."""
+    global _probe_exact
+    rng = np.random.default_rng(7)
+    nh = rng.normal(size=(60, 3)).astype(np.float32)
+    rays = np.ones((3, 600), np.float32)
+    rays[0], rays[1] = rng.uniform(-0.6, 0.6, 600), rng.uniform(-0.4, 0.4, 600)
+    nr = nh @ rays
+    a0, a1, a2 = nh[:, 0:1], nh[:, 1:2], nh[:, 2:3]
+    split = (a0 * rays[0] + a1 * rays[1]) + a2 * rays[2]
+    # A float32 fma is exact in float64 before its one rounding (products of 24-bit mantissas).
+    f = (a1.astype(np.float64) * rays[1] + a0 * rays[0]).astype(np.float32)
+    fused = (a2.astype(np.float64) * rays[2] + f).astype(np.float32)
+    off_fused, off_split = int(np.count_nonzero(nr != fused)), int(np.count_nonzero(nr != split))
+    _probe_exact = min(off_fused, off_split) == 0
+    return off_fused <= off_split
+
+
+# -- the kernels (plain Python here; _load compiles them) ------------------------------------------
+# Every elementwise expression keeps the numpy code's operations and their order, so that its
+# roundings are the same; only sums run in a different order.
+
+def _solve3(A, B, X):  # pragma: no cover (compiled)
+    """X = A^-1 B for A (3, 3) and B (3, m) by LU with partial pivoting (LAPACK's gesv); False
+    (X undefined) if A is singular."""
+    L = A.copy()
+    X[:, :] = B
+    m = B.shape[1]
+    for j in range(3):
+        p = j
+        big = abs(L[j, j])
+        for r in range(j + 1, 3):
+            if abs(L[r, j]) > big:
+                big = abs(L[r, j])
+                p = r
+        if L[p, j] == 0.0:
+            return False
+        if p != j:
+            for c in range(3):
+                t = L[j, c]
+                L[j, c] = L[p, c]
+                L[p, c] = t
+            for c in range(m):
+                t = X[j, c]
+                X[j, c] = X[p, c]
+                X[p, c] = t
+        inv = 1.0 / L[j, j]
+        for r in range(j + 1, 3):
+            f = L[r, j] * inv
+            L[r, j] = f
+            for c in range(j + 1, 3):
+                L[r, c] -= f * L[j, c]
+    for c in range(m):  # the triangular solves, column by column as LAPACK's go
+        X[1, c] -= X[0, c] * L[1, 0]
+        X[2, c] -= X[0, c] * L[2, 0]
+        X[2, c] -= X[1, c] * L[2, 1]
+        X[2, c] /= L[2, 2]
+        X[1, c] -= X[2, c] * L[1, 2]
+        X[0, c] -= X[2, c] * L[0, 2]
+        X[1, c] /= L[1, 1]
+        X[0, c] -= X[1, c] * L[0, 1]
+        X[0, c] /= L[0, 0]
+    return True
+
+
+def _refit_kernel(rx, ry, y, q_in, stride, c2, qvar, quantised, sk2, min_thr, hk, hk2, converged, iterations,
+                  with_shift):  # pragma: no cover (compiled)
+    """plane_fit._refit over _solve_step, written out per point (see there for the model)."""
+    n = rx.shape[0]
+    q0, q1, q2 = q_in[0], q_in[1], q_in[2]
+    mask = np.zeros(n, np.bool_)
+    m_shift = n if with_shift else 0
+    u_out = np.zeros(m_shift)
+    yp_out = np.zeros(m_shift)
+    H = np.zeros((3, 3))
+    g = np.zeros((3, 1))
+    step = np.zeros((3, 1))
+    chi2 = 0.0
+    stages = 2 if stride >= 2 else 1
+    for stage in range(stages):
+        last = stage == stages - 1
+        k = 1 if last else stride
+        shift = last and with_shift
+        for _ in range(iterations):
+            hxx = 0.0
+            hxy = 0.0
+            hx1 = 0.0
+            hyy = 0.0
+            hy1 = 0.0
+            h11 = 0.0
+            gx = 0.0
+            gy = 0.0
+            g1 = 0.0
+            chi2 = 0.0
+            for i in range(0, n, k):
+                xi = rx[i]
+                yi = ry[i]
+                yp = xi * q0
+                yp += yi * q1
+                yp += q2
+                res = y[i] - yp
+                r2 = res * res
+                yp2 = yp * yp
+                if quantised:
+                    var = yp2 * yp2
+                    var *= qvar
+                    var += c2
+                else:
+                    var = c2
+                band = yp2 * min_thr
+                band *= band
+                lim = var * sk2
+                if band > lim:
+                    lim = band
+                inside = r2 < lim and yp > 0
+                if last:
+                    mask[i] = inside
+                if shift:
+                    yp_out[i] = yp
+                    u_out[i] = 0.0
+                if not inside:
+                    continue
+                w = 1.0 / var
+                if r2 > var * hk2:  # Huber
+                    w *= hk * math.sqrt(var / r2)
+                if shift:
+                    u_out[i] = w * yp2
+                a = w * xi
+                b = w * yi
+                t = w * res
+                hxx += a * xi
+                hxy += a * yi
+                hx1 += a
+                hyy += b * yi
+                hy1 += b
+                h11 += w
+                gx += t * xi
+                gy += t * yi
+                g1 += t
+                chi2 += t * res
+            H[0, 0] = hxx
+            H[0, 1] = hxy
+            H[0, 2] = hx1
+            H[1, 0] = hxy
+            H[1, 1] = hyy
+            H[1, 2] = hy1
+            H[2, 0] = hx1
+            H[2, 1] = hy1
+            H[2, 2] = h11
+            g[0, 0] = gx
+            g[1, 0] = gy
+            g[2, 0] = g1
+            if _solve3(H, g, step):
+                s0, s1, s2 = step[0, 0], step[1, 0], step[2, 0]
+            else:  # numpy's LinAlgError: no step
+                s0, s1, s2 = 0.0, 0.0, 0.0
+            q0 = q0 + s0
+            q1 = q1 + s1
+            q2 = q2 + s2
+            # step @ H @ step as numpy evaluates it: (step @ H) @ step
+            v0 = s0 * H[0, 0] + s1 * H[1, 0] + s2 * H[2, 0]
+            v1 = s0 * H[0, 1] + s1 * H[1, 1] + s2 * H[2, 1]
+            v2 = s0 * H[0, 2] + s1 * H[1, 2] + s2 * H[2, 2]
+            if v0 * s0 + v1 * s1 + v2 * s2 < converged:
+                break
+    q_out = np.empty(3)
+    q_out[0] = q0
+    q_out[1] = q1
+    q_out[2] = q2
+    return q_out, H, mask, chi2, u_out, yp_out
+
+
+def _score_kernel(nh, dh, rays, z, thr, cols, all_cols, fused):  # pragma: no cover (compiled)
+    """plane_fit._score per hypothesis and point, in float32: |n.ray z + d| < -thr n.ray, with
+    n.ray rounded as numpy's matrix product rounds it (``fused``: a chain of fused multiply-adds,
+    emulated in float64, where products of float32 values are exact)."""
+    nhyp = nh.shape[0]
+    m = z.shape[0] if all_cols else cols.shape[0]
+    out = np.zeros(nhyp, np.intp)
+    for h in range(nhyp):
+        a0 = nh[h, 0]
+        a1 = nh[h, 1]
+        a2 = nh[h, 2]
+        d = dh[h]
+        count = 0
+        for jj in range(m):
+            j = jj if all_cols else cols[jj]
+            r0 = rays[0, j]
+            r1 = rays[1, j]
+            r2 = rays[2, j]
+            if fused:
+                nr = np.float32(np.float64(a1) * np.float64(r1) + np.float64(a0 * r0))
+                nr = np.float32(np.float64(a2) * np.float64(r2) + np.float64(nr))
+            else:
+                nr = (a0 * r0 + a1 * r1) + a2 * r2
+            err = abs(nr * z[j] + d)
+            if err < nr * -thr[j]:
+                count += 1
+        out[h] = count
+    return out
+
+
+def _behind_kernel(rx, ry, z, stride, n, d, c, qvar, quantised, margin_min):  # pragma: no cover (compiled)
+    """plane_fit._behind_points' count before the window: rays that meet the plane in front of
+    the camera with depth beyond it by more than max(3 depth_sigma(z_plane), margin_min)."""
+    n0, n1, n2 = n[0], n[1], n[2]
+    count = 0
+    for i in range(0, z.shape[0], stride):
+        nr = n0 * rx[i] + n1 * ry[i] + n2
+        if not nr < -1e-9:
+            continue
+        zp = -d / nr
+        s = zp * zp * c
+        if quantised:
+            s = math.sqrt(s * s + qvar)
+        margin = 3.0 * s
+        if margin_min > margin:
+            margin = margin_min
+        if z[i] > zp + margin:
+            count += 1
+    return count
+
+
+def _cov_kernel(H, B, n, d, scale):  # pragma: no cover (compiled)
+    """fit_plane's (Hi, Jqi, Jqi @ Hi @ Jqi.T * scale); ok False where numpy raises LinAlgError."""
+    eye = np.eye(3)
+    Hi = np.zeros((3, 3))
+    Jqi = np.zeros((3, 3))
+    cov = np.zeros((3, 3))
+    Jq = np.empty((3, 3))
+    dd = d * d
+    for r in range(3):
+        Jq[r, 0] = -B[0, r] / d
+        Jq[r, 1] = -B[1, r] / d
+        Jq[r, 2] = n[r] / dd
+    if not (_solve3(H, eye, Hi) and _solve3(Jq, eye, Jqi)):
+        return False, Hi, Jqi, cov
+    M = np.zeros((3, 3))
+    for r in range(3):
+        for c in range(3):
+            M[r, c] = Jqi[r, 0] * Hi[0, c] + Jqi[r, 1] * Hi[1, c] + Jqi[r, 2] * Hi[2, c]
+    for r in range(3):
+        for c in range(3):
+            cov[r, c] = (M[r, 0] * Jqi[c, 0] + M[r, 1] * Jqi[c, 1] + M[r, 2] * Jqi[c, 2]) * scale
+    return True, Hi, Jqi, cov
+
+
+def _inv_kernel(A):  # pragma: no cover (compiled)
+    Ai = np.zeros((3, 3))
+    ok = _solve3(A, np.eye(3), Ai)
+    return ok, Ai
+
+
+def _summary_kernel(rx, ry, z, mask, stride, h, v, n, d, halves):  # pragma: no cover (compiled)
+    """fit_plane's inlier summary and _not_flat's sums per half (see inlier_summary)."""
+    h0, h1, h2 = h[0], h[1], h[2]
+    v0, v1, v2 = v[0], v[1], v[2]
+    n0, n1, n2 = n[0], n[1], n[2]
+    m = (z.shape[0] + stride - 1) // stride
+    along = np.empty(m)
+    res = np.empty(m)
+    sums = np.zeros(8)
+    k = 0
+    for i in range(0, z.shape[0], stride):
+        if not mask[i]:
+            continue
+        zi = z[i]
+        px = rx[i] * zi
+        py = ry[i] * zi
+        a = h0 * px + h1 * py + h2 * zi
+        b = v0 * px + v1 * py + v2 * zi
+        sums[0] += px
+        sums[1] += py
+        sums[2] += zi
+        sums[3] += zi * zi
+        sums[4] += a
+        sums[5] += a * a
+        sums[6] += b
+        sums[7] += b * b
+        along[k] = a
+        res[k] = (n0 * px + n1 * py + n2 * zi) + d
+        k += 1
+    hs = np.zeros((5, 2))  # count, sum a', sum r, sum a'^2, sum a' r per half, as np.bincount sums them
+    if halves and k >= 40:
+        med = np.median(along[:k])
+        for j in range(k):
+            a = along[j] - med
+            side = 1 if a > 0 else 0
+            hs[0, side] += 1.0
+            hs[1, side] += a
+            hs[2, side] += res[j]
+            hs[3, side] += a * a
+            hs[4, side] += a * res[j]
+    return k, sums, hs

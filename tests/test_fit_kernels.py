@@ -1,0 +1,405 @@
+"""The plane fit's compiled kernels (robot/localization/fit_kernels.py) agree with its numpy code,
+the reference: kernel by kernel on random inputs, fit_plane on synthetic ROIs, and the whole
+localizer on rendered frames; and the backend choice (ROBOT_KERNELS) behaves."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import pytest
+
+from drivers.sim.clutter import leaning_boards, parallel_panel
+from drivers.sim.render import Box, SimScene, render_depth_frame
+from robot.config import load_robot_config
+from robot.localization import fit_kernels as fk
+from robot.localization import plane_fit as pf
+from robot.localization.localizer import Localizer, coarse_covariance
+from robot.maps.plane_map import load_plane_map
+
+ROBOT = load_robot_config("config/robot.yaml")
+ARENA = load_plane_map("config/maps/paper_arena.yaml")
+NEEDS_NUMBA = "the compiled kernels need numba (pip install -e '.[perf]')"
+
+
+@pytest.fixture(autouse=True)
+def _keep_backend(monkeypatch):
+    """Every test leaves the backend as it found it."""
+    fk.backend()
+    monkeypatch.setattr(fk, "_backend", fk._backend)
+    monkeypatch.setattr(fk, "_note", fk._note)
+    monkeypatch.setattr(fk, "_requested", fk._requested)
+
+
+@pytest.fixture
+def numba_backend():
+    pytest.importorskip("numba", reason=NEEDS_NUMBA)
+    assert fk.set_backend("numba") == "numba"
+
+
+def rel_err(a, b) -> float:
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    scale = float(np.max(np.abs(b))) if b.size else 0.0
+    return float(np.max(np.abs(a - b))) / scale if scale > 0 else float(np.max(np.abs(a - b), initial=0.0))
+
+
+# -- random inputs -----------------------------------------------------------------------------------
+
+def wall_points(rng, n, d=None, normal=None, spread=(0.55, 0.4)):
+    """Rays (rx, ry) of n pixels and the true plane q = -normal / d in inverse depth."""
+    normal = pf.unit(normal if normal is not None else [rng.normal(0, 0.3), rng.normal(0, 0.2), -1.0])
+    d = rng.uniform(0.4, 4.0) if d is None else d
+    rx, ry = rng.uniform(-spread[0], spread[0], n), rng.uniform(-spread[1], spread[1], n)
+    return rx, ry, -normal / d
+
+
+def noisy_inverse_depth(rng, rx, ry, q, params, outliers=0.1, heavy=True):
+    """Measured inverse depths of the plane q: stereo noise (``heavy``: with heavy tails), a share
+    of points far off the plane (outside the band; ``heavy``: also behind it), quantised to the
+    depth unit. The Huber loss acts on either noise."""
+    c = params.noise_subpixel / params.noise_fx_b
+    y = rx * q[0] + ry * q[1] + q[2] + c * (rng.standard_t(3, len(rx)) if heavy else rng.normal(0, 1, len(rx)))
+    off = rng.random(len(rx)) < outliers
+    y[off] *= rng.choice([0.7, 1.3] if heavy else [1.3], int(off.sum())) * rng.uniform(0.9, 1.1, int(off.sum()))
+    y = np.maximum(y, 0.05)
+    if params.depth_unit > 0:
+        z = np.maximum(np.round(1.0 / y / params.depth_unit), 1.0) * params.depth_unit
+        y = 1.0 / z
+    return y
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_refit_kernel_equals_the_numpy_stage_loop(numba_backend, seed):
+    rng = np.random.default_rng(seed)
+    depth_unit = (0.0, 0.001, 0.004)[seed % 3]
+    params = pf.FitParams(depth_unit=depth_unit, min_threshold=(0.004, 0.0133)[seed % 2])
+    n = int(rng.choice([400, 1500, 2500, 6000, 12000]))
+    rx, ry, q_true = wall_points(rng, n)
+    y = noisy_inverse_depth(rng, rx, ry, q_true, params, outliers=rng.uniform(0.0, 0.4))
+    q0 = q_true * (1.0 + rng.normal(0, 0.01, 3))  # where identification leaves it: off by many sigma
+    for stride in (0, n // (4 * params.sample)):
+        with_shift = depth_unit > 0
+        q_ref, H_ref, mask_ref, chi2_ref, shift_ref = pf._refit(rx, ry, y, q0, stride, params)
+        q, H, mask, chi2, shift = fk.refit_stages(rx, ry, y, q0, stride, params, with_shift, pf.CONVERGED,
+                                                  pf.STAGE_ITERATIONS)
+        assert rel_err(q, q_ref) < 1e-9
+        assert rel_err(H, H_ref) < 1e-9
+        assert abs(chi2 - chi2_ref) <= 1e-9 * abs(chi2_ref)
+        assert mask.dtype == bool and np.array_equal(mask, mask_ref)
+        assert (shift is None) == (shift_ref is None)
+        if shift is not None:
+            assert rel_err(shift[0], shift_ref[0]) < 1e-9 and rel_err(shift[1], shift_ref[1]) < 1e-9
+    # The cases the kernel must cover: Huber weights and points outside the band.
+    c = params.noise_subpixel / params.noise_fx_b
+    res = np.abs(y - (rx * q_ref[0] + ry * q_ref[1] + q_ref[2]))
+    assert np.any(mask_ref & (res > params.huber_k * c)) and not mask_ref.all()
+
+
+def test_refit_kernel_with_no_inliers_takes_no_step(numba_backend):
+    """All points outside the band: numpy's solve of the zero system raises, the loop takes no step."""
+    rng = np.random.default_rng(3)
+    params = pf.FitParams(depth_unit=0.001)
+    rx, ry, q = wall_points(rng, 800, d=2.0)
+    y = noisy_inverse_depth(rng, rx, ry, q, params, outliers=0.0)
+    q_far = q * 0.5  # the plane twice as far: nothing within its band
+    q_ref, H_ref, mask_ref, chi2_ref, _ = pf._refit(rx, ry, y, q_far, 0, params)
+    q_nb, H_nb, mask_nb, chi2_nb, _ = fk.refit_stages(rx, ry, y, q_far, 0, params, True, pf.CONVERGED, pf.STAGE_ITERATIONS)
+    assert not mask_ref.any() and not mask_nb.any()
+    assert np.array_equal(q_nb, q_ref) and np.array_equal(q_nb, q_far)
+    assert np.array_equal(H_nb, H_ref) and chi2_nb == chi2_ref == 0.0
+
+
+def two_surfaces(rng, n, params):
+    """A wall and a panel 0.15 m in front of it over part of the patch, with noise and outliers."""
+    rx, ry, q = wall_points(rng, n, d=rng.uniform(0.8, 3.0))
+    panel = rx < rng.uniform(-0.3, 0.2)
+    q_panel = q * (1.0 / q[2]) / (1.0 / q[2] - 0.15)
+    qq = np.where(panel[:, None], q_panel, q)
+    y = noisy_inverse_depth(rng, rx, ry, np.array([qq[:, 0], qq[:, 1], qq[:, 2]]), params, outliers=0.05)
+    return rx, ry, 1.0 / y, q
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_score_kernel_counts_exactly_what_numpy_counts(numba_backend, seed):
+    rng = np.random.default_rng(100 + seed)
+    params = pf.FitParams(depth_unit=0.001 if seed % 2 else 0.0)
+    rx, ry, z, _ = two_surfaces(rng, 3000, params)
+    sub = pf._subsample(rx, ry, z, params)
+    m = len(sub.z)
+    pool = np.flatnonzero(rng.random(m) < 0.6)
+    nh, dh = pf._global_hypotheses(sub, np.arange(m), params.iterations)
+    nl, dl = pf._local_hypotheses(sub, pool, params.iterations)
+    # Hypotheses that put one point each exactly on its band edge (in exact arithmetic): whether it
+    # counts is decided by float32 rounding alone, which the kernel must reproduce.
+    j = rng.choice(m, 60, replace=False)
+    ne = np.tile(nh[:1], (60, 1))
+    nr = ne[:, 0] * sub.rx[j] + ne[:, 1] * sub.ry[j] + ne[:, 2]
+    de = -nr * sub.z[j] + sub.thr[j] * np.abs(nr) * rng.choice([-1.0, 1.0], 60)
+    for hn, hd in ((nh, dh), (nl, dl), (ne, de)):
+        for cols in (None, pool):
+            ref = pf._score(sub, hn, hd, cols)
+            got = fk.score(hn, hd, sub.rays32, sub.z32, sub.thr32, cols)
+            assert np.array_equal(got, ref)
+            assert got.dtype == ref.dtype
+
+
+def test_score_kernel_for_a_blas_without_fused_products(numba_backend):
+    """Where numpy's float32 product rounds each product and sum (no FMA), the kernel counts as an
+    elementwise numpy score with those roundings does."""
+    rng = np.random.default_rng(7)
+    params = pf.FitParams(depth_unit=0.001)
+    rx, ry, z, _ = two_surfaces(rng, 3000, params)
+    sub = pf._subsample(rx, ry, z, params)
+    nh, dh = pf._global_hypotheses(sub, np.arange(len(sub.z)), params.iterations)
+    n32, d32 = nh.astype(np.float32), dh.astype(np.float32)
+    nr = (n32[:, 0:1] * sub.rays32[0] + n32[:, 1:2] * sub.rays32[1]) + n32[:, 2:3] * sub.rays32[2]
+    ref = np.count_nonzero(np.abs(nr * sub.z32 + d32[:, None]) < nr * -sub.thr32, axis=1)
+    got = fk._nb["_score_kernel"](np.ascontiguousarray(n32), d32, sub.rays32, sub.z32, sub.thr32, fk._NO_COLS, True, False)
+    assert np.array_equal(got, ref)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_behind_count_equals_numpy(numba_backend, seed):
+    rng = np.random.default_rng(200 + seed)
+    params = pf.FitParams(depth_unit=0.001 if seed % 2 else 0.0)
+    rx, ry, z, q = two_surfaces(rng, 4000, params)
+    qn = math.sqrt(float(q @ q))
+    pi_pred = np.r_[-q / qn, 1.0 / qn]
+    panel_q = np.array([q[0], q[1], q[2] * 1.1])  # a plane in front of the wall: the wall is behind it
+    for qq in (q, panel_q, q * 0.8):
+        nn = math.sqrt(float(qq @ qq))
+        n, d = -qq / nn, 1.0 / nn
+        for stride in (1, 3):
+            for matters in (0.015, 0.05, 1.0):
+                fk.set_backend("numpy")
+                ref = pf._behind_share(rx, ry, z, stride, n, d, pi_pred, params, matters)
+                fk.set_backend("numba")
+                got = pf._behind_share(rx, ry, z, stride, n, d, pi_pred, params, matters)
+                assert got == ref
+                assert ref == pf._behind_points(rx[::stride], ry[::stride], z[::stride], n, d, pi_pred, params, matters)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_covariance_kernels_equal_numpy_inverses(numba_backend, seed):
+    rng = np.random.default_rng(300 + seed)
+    rx, ry, q = wall_points(rng, 500, spread=(rng.uniform(0.02, 0.6), rng.uniform(0.02, 0.4)))
+    w = rng.uniform(1e4, 1e5, 500)
+    R = np.vstack([rx, ry, np.ones(500)])
+    H = (R * w) @ R.T
+    qn = math.sqrt(float(q @ q))
+    n, d = -q / qn, 1.0 / qn
+    B = pf._tangent_basis(n)
+    Jq = np.column_stack([-B[0] / d, -B[1] / d, n / (d * d)])
+    scale = max(rng.uniform(0.5, 2.0), 1.0)
+    Hi, Jqi = np.linalg.inv(H), np.linalg.inv(Jq)
+    cov = Jqi @ Hi @ Jqi.T * scale
+    got = fk.plane_cov(H, B, n, d, scale)
+    assert got is not None
+    # To the rounding of the inverse: the condition number times 1e-16.
+    tol = 1e-16 * np.linalg.cond(H) * 100
+    assert rel_err(got[0], Hi) < tol and rel_err(got[1], Jqi) < 1e-12 and rel_err(got[2], cov) < tol
+    assert rel_err(fk.inverse(cov), np.linalg.inv(cov)) < 1e-16 * np.linalg.cond(cov) * 100
+    assert fk.plane_cov(np.zeros((3, 3)), B, n, d, scale) is None
+    with pytest.raises(np.linalg.LinAlgError):
+        fk.inverse(np.ones((3, 3)))
+
+
+# -- fit_plane on synthetic ROIs -------------------------------------------------------------------
+
+def synthetic_roi(seed, kind):
+    """A wall patch seen by a camera whose up is -y, with what the fit must sort out: clutter in
+    front ("panel"), a board meeting it at a small angle ("wedge"), a hole to a surface behind
+    ("behind") or nothing ("plain")."""
+    rng = np.random.default_rng(seed)
+    params = pf.FitParams(depth_unit=0.001, up=(0.0, -1.0, 0.0), min_threshold=0.0133, offset_gate=0.06)
+    n_true = pf.unit([rng.normal(0, 0.3), rng.normal(0, 0.02), -1.0])
+    d = rng.uniform(0.8, 3.0)
+    rx, ry, q = wall_points(rng, int(rng.integers(2000, 9000)), d=d, normal=n_true)
+    qq = np.tile(q, (len(rx), 1))
+    if kind == "panel":  # 0.1 m in front, over a third of the patch
+        qq[rx < -0.2] = q * d / (d - 0.1)
+    elif kind == "wedge":  # turned 4 deg about the patch's vertical centre line
+        c, s = math.cos(math.radians(4)), math.sin(math.radians(4))
+        n2 = np.array([c * n_true[0] - s * n_true[2], n_true[1], s * n_true[0] + c * n_true[2]])
+        qq[rx > 0] = -n2 / d
+    elif kind == "behind":  # a far surface through a hole
+        qq[(np.abs(rx) < 0.1) & (ry > 0)] = q * d / (d + 0.5)
+    y = noisy_inverse_depth(rng, rx, ry, qq.T, params, outliers=0.03, heavy=False)
+    n_pred = pf.unit(n_true + rng.normal(0, 0.01, 3))
+    pi_pred = np.r_[n_pred, d + rng.normal(0, 0.01)]
+    return rx, ry, 1.0 / y, pi_pred, params
+
+
+def assert_same_fit(a, b):
+    assert (a.ok, a.reason, a.inliers, a.surfaces, a.evidence) == (b.ok, b.reason, b.inliers, b.surfaces, b.evidence)
+    for name in ("n_camera", "d_camera", "info", "cov", "basis", "rms", "angle_to_prediction", "offset_to_prediction",
+                 "excess_var", "centroid", "z2_mean", "lateral_std", "vertical_std"):
+        va, vb = getattr(a, name), getattr(b, name)
+        assert (va is None) == (vb is None), name
+        if va is not None:
+            assert rel_err(va, vb) < 1e-9 or abs(float(np.max(np.abs(np.subtract(va, vb))))) < 1e-12, name
+    assert (a.inlier_mask is None) == (b.inlier_mask is None)
+    if a.inlier_mask is not None:
+        assert np.array_equal(a.inlier_mask, b.inlier_mask)
+
+
+def test_fit_plane_is_the_same_with_either_backend(numba_backend):
+    reasons = set()
+    for seed in range(24):
+        for kind in ("plain", "panel", "wedge", "behind"):
+            rx, ry, z, pi_pred, params = synthetic_roi(seed, kind)
+            fits = {}
+            for name in ("numpy", "numba"):
+                fk.set_backend(name)
+                fits[name] = pf.fit_plane(rx, ry, z, pi_pred, params)
+            assert_same_fit(fits["numba"], fits["numpy"])
+            reasons.add(fits["numpy"].reason.split(":")[0].split("(")[0].strip())
+            if fits["numpy"].ok:  # the next pass: the fit as the start on the same ROI
+                start = (fits["numpy"].n_camera, fits["numpy"].d_camera)
+                again = {}
+                for name in ("numpy", "numba"):
+                    fk.set_backend(name)
+                    again[name] = pf.fit_plane(rx, ry, z, pi_pred, params, start)
+                assert_same_fit(again["numba"], again["numpy"])
+    # The scenes reach the fit's verdicts, not only its good fits.
+    assert "ok" in reasons and "not one flat surface" in reasons, reasons
+    assert any("behind" in r for r in reasons), reasons
+
+
+# -- the localizer on rendered frames ----------------------------------------------------------------
+
+def rendered(scene, pose, seed):
+    rng = np.random.default_rng(seed)
+    return [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, frame_number=seed) for c in ROBOT.cameras]
+
+
+def localize_both(frames, coarse, cov):
+    out = {}
+    for name in ("numpy", "numba"):
+        fk.set_backend(name)
+        out[name] = Localizer(ROBOT, ARENA).localize(frames, coarse, cov)
+    return out["numpy"], out["numba"]
+
+
+TRACKING = ((0.007, -0.007, 0.008), coarse_covariance(0.02, math.radians(1.0)))
+COLD = ((0.07, -0.07, math.radians(10.0)), None)
+FACING_WEST = (0.5, 0.5, math.pi)
+
+
+def scene(name):
+    """(scene, true poses): the arena, and clutter in front of wall_west as the front camera sees it."""
+    west = ARENA["wall_west"]
+    if name == "empty":
+        return SimScene(ARENA), [(0.5, 0.5, 0.3), (0.35, 0.7, 2.6), (0.2, 0.9, -0.8)]
+    clutter = {"panel": lambda: [parallel_panel(west, 0.15, 1.0, None, region=(0.0, 0.9))],
+               "boards": lambda: [leaning_boards(west, 0.9, np.random.default_rng(5))],
+               "box": lambda: [Box(-0.10, 0.5, 0.1, 0.5, 0.24)]}[name]()
+    return SimScene(ARENA, clutter), [FACING_WEST]
+
+
+@pytest.mark.parametrize("name", ["empty", "panel", "boards", "box"])
+def test_localizer_gives_the_same_result_with_either_backend(numba_backend, name):
+    scene_, poses = scene(name)
+    for i, truth in enumerate(poses):
+        frames = rendered(scene_, truth, seed=41 + i)
+        for off, cov in (TRACKING, COLD):
+            coarse = (truth[0] + off[0], truth[1] + off[1], truth[2] + off[2])
+            a, b = localize_both(frames, coarse, cov)
+            assert b.status == a.status
+            assert abs(b.x - a.x) < 1e-9 and abs(b.y - a.y) < 1e-9 and abs(b.phi - a.phi) < 1e-9
+            assert rel_err(b.cov, a.cov) < 1e-7
+            assert [(p.id, p.camera, p.inliers, p.used, p.reason, p.roi_points) for p in b.planes] == \
+                   [(p.id, p.camera, p.inliers, p.used, p.reason, p.roi_points) for p in a.planes]
+            for pa, pb in zip(a.planes, b.planes):
+                if pa.normal is not None:
+                    assert np.allclose(pb.normal, pa.normal, atol=2e-6) and abs(pb.d - pa.d) <= 2e-6
+            assert b.passes == a.passes
+
+
+# -- the backend choice -----------------------------------------------------------------------------
+
+def test_numpy_backend_forced_runs_the_numpy_code(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("a compiled kernel ran with the numpy backend")
+
+    for name in ("refit_stages", "score", "behind_count", "plane_cov", "inverse", "inlier_summary"):
+        monkeypatch.setattr(fk, name, refuse)
+    assert fk.set_backend("numpy") == "numpy" and fk.backend() == "numpy"
+    assert fk.warm_up() == 0.0
+    truth = FACING_WEST
+    frames = rendered(SimScene(ARENA, [Box(-0.10, 0.5, 0.1, 0.5, 0.24)]), truth, seed=3)
+    res = Localizer(ROBOT, ARENA).localize(frames, (truth[0] + 0.05, truth[1] - 0.05, truth[2] + 0.1))
+    assert any(p.used for p in res.planes)
+    assert math.hypot(res.x - truth[0], res.y - truth[1]) < 0.005
+
+
+def test_environment_chooses_the_backend(monkeypatch):
+    monkeypatch.setenv(fk.ENV, "numpy")
+    assert fk.set_backend(None) == "numpy"
+    monkeypatch.setenv(fk.ENV, "fortran")
+    with pytest.raises(RuntimeError, match="ROBOT_KERNELS 'fortran'"):
+        fk.set_backend(None)
+    monkeypatch.delenv(fk.ENV)
+    assert fk.set_backend(None) in ("numba", "numpy")  # auto
+
+
+def test_numba_asked_for_but_missing_is_a_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "numba", None)  # import numba now raises ImportError
+    monkeypatch.setenv(fk.ENV, "numba")
+    with pytest.raises(RuntimeError) as err:
+        fk.set_backend(None)
+    message = str(err.value)
+    assert "\n" not in message and "numba does not import" in message and "ROBOT_KERNELS" in message
+    # auto falls back to numpy, and says why
+    monkeypatch.setenv(fk.ENV, "auto")
+    assert fk.set_backend(None) == "numpy"
+    assert "numba does not import" in fk.backend_note()
+    assert fk.warm_up() == 0.0
+
+
+def test_warm_up_compiles_every_kernel(numba_backend):
+    seconds = fk.warm_up()
+    assert seconds >= 0.0
+    assert all(fk._nb[name].signatures for name in fk._KERNELS)
+
+
+def test_kernels_that_do_not_compile_fall_back_to_numpy_only_under_auto(numba_backend, monkeypatch):
+    def broken(*args):
+        raise RuntimeError("no LLVM here\nsecond line")
+
+    monkeypatch.setitem(fk._nb, "_refit_kernel", broken)
+    with pytest.raises(RuntimeError, match="no LLVM"):
+        fk.warm_up()  # numba was asked for
+    assert fk.backend() == "numba"
+    assert fk.set_backend("auto") == "numba"
+    fk.warm_up()
+    assert fk.backend() == "numpy"
+    assert "did not compile" in fk.backend_note() and "\n" not in fk.backend_note()
+
+
+def test_the_app_loads_the_kernels_before_its_first_frame_and_stops_if_they_were_demanded_and_fail(monkeypatch):
+    """Start-up compiles (or loads) the kernels off the loop before any frame; when ROBOT_KERNELS=numba
+    was asked for and they cannot be had, the controller does not start (one reason, exit 1)."""
+    import asyncio
+
+    from robot.app.controller import AppOptions
+    from robot.config import load_robot_config
+    from robot.maps.plane_map import load_plane_map
+    from robot.sim.realtime import RealtimeSimSettings, sim_rig
+
+    robot = load_robot_config("config/robot.yaml")
+    arena = load_plane_map("config/maps/paper_arena.yaml")
+    calls = []
+
+    def failing_warm_up():
+        calls.append("warm_up")
+        raise RuntimeError("ROBOT_KERNELS=numba but numba is not installed (pip install '.[perf]')")
+
+    monkeypatch.setattr(fk, "warm_up", failing_warm_up)
+    opts = AppOptions(install_signal_handlers=False, stop_when_done=False)
+    with sim_rig(robot, arena, (0.4, 0.6, 0.0), RealtimeSimSettings(fps=8, decimation=4), opts) as rig:
+        rc = asyncio.run(asyncio.wait_for(rig.app.run(), 60.0))
+    assert rc == 1 and calls == ["warm_up"]
+    assert rig.app.exit_reason.startswith("plane-fit kernels: RuntimeError: ROBOT_KERNELS=numba")
+    assert rig.app.stats.localizations == 0
