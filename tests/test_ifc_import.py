@@ -387,6 +387,23 @@ def test_a_mangled_schema_name_is_quoted_on_one_line(tmp_path):
 
 
 @needs_ifc
+def test_a_file_that_crashes_the_parser_is_one_error_and_this_process_lives_on(tmp_path, monkeypatch):
+    """ifcopenshell's C++ parser segfaulted on one damaged file of the long fuzz run: the file is
+    parsed in a forked child first, so the crash becomes an error naming it."""
+    import os
+    import signal
+
+    import ifcopenshell
+
+    p = tmp_path / "crash.ifc"
+    p.write_text(ifc_text(ROOM_WALLS[:1]))
+    monkeypatch.setattr(ifcopenshell, "open", lambda *a, **k: os.kill(os.getpid(), signal.SIGSEGV))
+    with pytest.raises(ConfigError, match=r"crash\.ifc: not a readable IFC file: ifcopenshell's parser crashed "
+                                          r"\(SIGSEGV\)"):
+        open_model(p)
+
+
+@needs_ifc
 def test_unreadable_and_missing_files(tmp_path):
     junk = tmp_path / "junk.ifc"
     junk.write_text("this is not STEP")
