@@ -480,5 +480,6 @@ def test_loopback_rehandshakes_after_a_board_reboot_with_continuous_angles():
         after += ch.advance(0.02)
     assert ch.link_state is LinkState.READY
     assert ch.stats["link_losses"] == 1 and ch.stats["reconnects"] == 1 and ch.stats["board_resets"] == 1
+    assert ch.reconnects == 1
     assert all(s.angles[0] >= before[-1].angles[0] - TICK for s in after)  # no jump back to the board's zero
     assert after[-1].angles[0] > before[-1].angles[0] + 1.0

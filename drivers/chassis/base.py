@@ -145,6 +145,12 @@ class Chassis(abc.ABC):
     def stats(self) -> Dict[str, object]:
         return {}
 
+    @property
+    def reconnects(self) -> int:
+        """How often the link came back after a loss (``stats["reconnects"]``): the control loop
+        reads it every tick, so drivers answer it without building ``stats``."""
+        return int(self.stats.get("reconnects", 0) or 0)
+
     @abc.abstractmethod
     async def connect(self) -> None: ...
 

@@ -61,6 +61,10 @@ class LoopbackChassis(Chassis):
         return self._session.max_wheel_speed
 
     @property
+    def reconnects(self) -> int:
+        return int(self._session.counters.get("reconnects", 0))
+
+    @property
     def stats(self) -> Dict[str, object]:
         d: Dict[str, object] = dict(self._session.counters)
         d.update({f"rx_{k}": v for k, v in self._session.decoder.stats.as_dict().items()})

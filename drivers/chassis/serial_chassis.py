@@ -125,6 +125,10 @@ class SerialChassis(Chassis):
         self._session.last_error = text
 
     @property
+    def reconnects(self) -> int:
+        return int(self._session.counters.get("reconnects", 0))
+
+    @property
     def stats(self) -> Dict[str, object]:
         d: Dict[str, object] = dict(self._counters)
         d.update({f"rx_{k}": v for k, v in self._session.decoder.stats.as_dict().items()})

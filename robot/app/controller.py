@@ -590,7 +590,7 @@ class RobotApp:
             del ticks[:10000]
         link_ok = self.chassis.link_state is LinkState.READY
         self.core.set_chassis_link(link_ok, "" if link_ok else f"chassis link {self.chassis.link_state.value}")
-        reconnects = int(self.chassis.stats.get("reconnects", 0) or 0)
+        reconnects = self.chassis.reconnects
         if self._reconnects is not None and reconnects != self._reconnects:
             # a new session (perhaps a rebooted board) may have come up between two ticks
             self.core.note_fault(t, "the motor board reconnected")

@@ -53,11 +53,14 @@ def validate_frame_arrays(where: str, depth, depth_scale, K, truth: Optional[Seq
         raise InputError(f"{where}: 'depth_scale' is {depth_scale} m per unit, more than {MAX_DEPTH_SCALE} "
                          f"(D400 cameras use 0.001)")
     K = np.asarray(K)
-    if K.shape != (3, 3) or K.dtype.kind not in "fiu" or not np.all(np.isfinite(K)):
+    # In floats: every live frame passes here on the event loop, and numpy's per-call cost on a
+    # 3x3 matrix is several times the checks themselves.
+    k = K.tolist() if K.shape == (3, 3) and K.dtype.kind in "fiu" else None
+    if k is None or not all(math.isfinite(v) for row in k for v in row):
         raise InputError(f"{where}: 'K' must be a finite 3x3 matrix, got shape {K.shape}")
-    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[0, 1] != 0 or np.any(K[2] != (0, 0, 1)):
+    if k[0][0] <= 0 or k[1][1] <= 0 or k[0][1] != 0 or k[2] != [0, 0, 1]:
         raise InputError(f"{where}: 'K' is not a pinhole intrinsic matrix: {np.round(K, 6).tolist()}")
-    if np.any(np.abs(K) > MAX_K_ENTRY):
+    if any(abs(v) > MAX_K_ENTRY for row in k for v in row):
         raise InputError(f"{where}: 'K' has entries beyond {MAX_K_ENTRY:g} px: not a camera's intrinsics")
     if truth is not None:
         t = np.asarray(truth, dtype=float)

@@ -168,12 +168,14 @@ def test_handshake_reaches_ready_and_close_ends_it(rig):
         assert ch.link_state is LinkState.CLOSED
         await ch.connect()
         state, info, limit = ch.link_state, ch.board_info, ch.max_wheel_speed
+        counted = (ch.reconnects, ch.stats.get("reconnects", 0))
         await ch.close()
         await ch.close()  # idempotent
-        return state, info, limit, ch.link_state
+        return state, info, limit, ch.link_state, counted
 
-    state, info, limit, after = run(main())
+    state, info, limit, after, counted = run(main())
     assert state is LinkState.READY and after is LinkState.CLOSED
+    assert counted == (0, 0)  # the cheap count the control loop reads is the stats' one
     assert info is not None and info.ticks_per_rev == rig.config.ticks_per_rev
     assert 0.0 < limit <= rig.config.max_wheel_speed
 
