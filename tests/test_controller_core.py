@@ -176,3 +176,38 @@ def test_one_fusion_step_for_the_frames_of_both_cameras_fuses_what_one_at_a_time
     (pa, Pa), (pb, Pb) = cores[0].pose(0.1), cores[1].pose(0.1)
     assert np.allclose(pa, pb, atol=1e-9) and np.allclose(Pa, Pb, rtol=1e-6, atol=1e-15)
     assert math.hypot(pa[0] - truth[0], pa[1] - truth[1]) < 0.003  # and both did correct the 13 mm start error
+
+
+def test_the_app_takes_the_frames_of_all_streaming_cameras_as_one_set():
+    """After a camera's frame the localization task waits for the other streaming cameras' (at
+    most half a frame period), never for a camera that is not streaming."""
+    import asyncio
+
+    from drivers.camera.base import CameraState
+    from robot.app.controller import RobotApp
+    from robot.base.samples import DepthFrame
+    from robot.maps.plane_map import load_plane_map
+
+    arena = load_plane_map("config/maps/paper_arena.yaml")
+    app = RobotApp(ROBOT, arena, [], None)
+    front, left = (c.name for c in ROBOT.cameras)
+
+    def frame(name):
+        return DepthFrame(name, np.zeros((4, 4), np.uint16), 0.001, np.eye(3), t_capture=0.0, frame_number=1)
+
+    async def scenario(left_state, deliver_left):
+        app._new_frame = asyncio.Event()
+        app._slots = {front: frame(front), left: None}
+        app.camera_states = {front: CameraState.STREAMING.value, left: left_state}
+        loop = asyncio.get_running_loop()
+        if deliver_left:
+            def arrive():
+                app._slots[left] = frame(left)
+                app._new_frame.set()
+            loop.call_soon(arrive)
+        await asyncio.wait_for(app._rest_of_set(), 5.0)  # the guard only: half a period is 17 ms
+        return {name for name, f in app._slots.items() if f is not None}
+
+    assert asyncio.run(scenario(CameraState.STREAMING.value, True)) == {front, left}
+    assert asyncio.run(scenario(CameraState.STALLED.value, False)) == {front}  # not waited for
+    assert asyncio.run(scenario(CameraState.STREAMING.value, False)) == {front}  # waited, then alone
