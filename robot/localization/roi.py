@@ -11,13 +11,17 @@ those pixels are ever deprojected, so there is no reason to label the others.
 
 On a building floor most of the per-frame cost is Python overhead per plane and polygon, so the
 work is arranged to be vectorised over the candidates and to touch a plane's pixels only when
-it can own some (measured in scripts/bench_buildings.py).
+it can own some (measured in scripts/bench_buildings.py). The images a frame draws in are kept
+per grid and thread and reset where the last frame drew, not allocated per frame; every
+shortcut gives exactly what the plain code gives (tests/test_roi_speed_equivalence.py holds
+the plain code and checks).
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
@@ -64,8 +68,12 @@ class CameraGrid:
     stride: int
 
     @property
-    def shape(self):
-        return (len(range(0, self.height, self.stride)), len(range(0, self.width, self.stride)))
+    def shape(self) -> Tuple[int, int]:
+        s = self.__dict__.get("_shape")
+        if s is None:
+            s = self.__dict__["_shape"] = (len(range(0, self.height, self.stride)),
+                                           len(range(0, self.width, self.stride)))
+        return s
 
     @property
     def frustum(self) -> np.ndarray:
@@ -94,6 +102,97 @@ class CameraGrid:
             r = self.__dict__["_rays"] = (cols, rows, x_img, y_img)
         return r
 
+    def _per_frame(self) -> _GridConstants:
+        """What every frame on this grid reads, in the form it reads it (computed once)."""
+        c = self.__dict__.get("_constants")
+        if c is None:
+            c = self.__dict__["_constants"] = _GridConstants(self)
+        return c
+
+    def _scratch(self) -> _Scratch:
+        """This thread's depth buffer and label image on this grid (one set per thread, so that
+        cameras or searches on other threads never share them)."""
+        by_thread = self.__dict__.get("_scratch_by_thread")
+        if by_thread is None:
+            by_thread = self.__dict__["_scratch_by_thread"] = {}
+        key = threading.get_ident()
+        s = by_thread.get(key)
+        if s is None:
+            if len(by_thread) >= 4:  # forget the buffers of threads that have ended
+                alive = {t.ident for t in threading.enumerate()}
+                for gone in [t for t in by_thread if t not in alive]:
+                    del by_thread[gone]
+            s = by_thread[key] = _Scratch(self.shape)
+        return s
+
+
+class _GridConstants:
+    """A grid's fixed numbers in the form the per-frame loops use them."""
+
+    def __init__(self, grid: CameraGrid):
+        cols, rows, _, _ = grid.rays
+        self.cols: List[float] = cols.tolist()
+        self.rows: List[float] = rows.tolist()
+        # Largest |x/z| and |y/z| on the grid: the scale of the float32 rounding in rasterize_views.
+        self.col_span = max(-self.cols[0], self.cols[-1])
+        self.row_span = max(-self.rows[0], self.rows[-1])
+        frustum = grid.frustum
+        # The operands of the vertex-frustum product, as predict_plane_views has always passed them.
+        self.frustum_normals = frustum[:, :3]
+        self.frustum_neg_d = -frustum[:, 3]
+        self.bit_weights = 1 << np.arange(len(frustum))
+        self.frustum_list: List[List[float]] = frustum.tolist()
+        self.planes_for_bits: Dict[int, List[List[float]]] = {}  # frustum planes by outside-bit set
+        self.f_px = np.array([grid.K[0, 0], grid.K[1, 1]])  # (f_x, f_y)
+        self.c_px = np.array(grid.K[:2, 2])  # (c_x, c_y)
+        self.fixed_scale = float(1 << _SUBPIXEL_BITS) / grid.stride
+
+    def frustum_planes_for(self, bits: int) -> List[List[float]]:
+        got = self.planes_for_bits.get(bits)
+        if got is None:
+            got = self.planes_for_bits[bits] = [f for j, f in enumerate(self.frustum_list) if bits >> j & 1]
+        return got
+
+
+class _Scratch:
+    """A grid's images reused from frame to frame instead of allocated for each: what the last
+    rasterization drew is reset at the start of the next."""
+
+    def __init__(self, shape: Tuple[int, int]):
+        self.ibuf = np.zeros(shape, np.float32)  # inverse depth drawn so far, 0 for nothing
+        self.label = np.full(shape, -1, np.int32)
+        self.dirty: List[Tuple[int, int, int, int]] = []  # boxes (r0, r1, c0, c1) drawn last
+
+
+class _Work:
+    """Images for one plane at a time, on its box (views into grid-sized buffers): nothing in
+    them outlives the plane, so grids of one size share them (the cameras' grids, usually),
+    which keeps what a frame touches small enough to stay in cache."""
+
+    def __init__(self, shape: Tuple[int, int]):
+        self.mask = np.zeros(shape, np.uint8)  # the plane's polygons (1)
+        self.inv = np.zeros(shape, np.float32)  # its inverse depth
+        self.upd = np.zeros(shape, np.uint8)  # the pixels it wins (1)
+        self.fill = np.zeros(shape, np.int32)  # its index, to copy through ``upd``
+
+
+_work = threading.local()
+_WORK_SHAPES = 4  # grid sizes a thread keeps work images for (the cameras' usually share one)
+
+
+def _work_buffers(shape: Tuple[int, int]) -> _Work:
+    """This thread's work images for grids of ``shape``."""
+    by_shape: Optional[Dict[Tuple[int, int], _Work]] = getattr(_work, "by_shape", None)
+    if by_shape is None:
+        by_shape = _work.by_shape = {}
+    w = by_shape.pop(shape, None)
+    if w is None:
+        if len(by_shape) >= _WORK_SHAPES:
+            del by_shape[next(iter(by_shape))]  # the size used longest ago
+        w = _Work(shape)
+    by_shape[shape] = w  # last in the order: most recently used
+    return w
+
 
 def camera_views(plane_map: PlaneMap, index: PlaneIndex, cam: CameraConfig, pose: Tuple[float, float, float],
                  max_range: float, stride: int = 1) -> Tuple[List[PlaneView], np.ndarray, CameraGrid]:
@@ -118,6 +217,7 @@ def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground
     elementwise), so a plane's view does not depend on which other planes are candidates.
     """
     pk = packed_polygons(plane_map)
+    consts = grid._per_frame()
     # Keep the candidates the camera sees from their observable side, with their planes in C.
     facing, pi_camera = _facing_camera(pk, candidates, T_ground_camera)
     if not facing:
@@ -125,18 +225,20 @@ def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground
     # Stack their polygons' vertices, in C.
     polys = _stack_in_camera(pk, facing, T_ground_camera)
     # Drop the polygons outside the frustum and clip those that cross it.
-    clipped = _clip_to_frustum(polys, grid.frustum)
+    clipped = _clip_to_frustum(polys, consts)
     if not clipped.kept:
         return []
     # Project every vertex: full-resolution pixels, and the fixed-point grid pixels fillPoly takes.
-    px = _project(clipped.Q_camera, grid.K)
-    fixed = _fixed_point(px, grid.stride)
+    px = _project(clipped.Q_camera, consts.f_px, consts.c_px)
+    fixed = np.rint(px * consts.fixed_scale).astype(np.int32)  # as _fixed_point(px, grid.stride)
     # Gather each plane's outlines, nearest depth and grid box; drop the planes beyond max_range.
     found = _plane_outlines(polys.plane_of, clipped, px, fixed, grid, max_range)
     # One view per plane left, with its plane in C.
     row = {c: r for r, c in enumerate(facing)}
-    return [PlaneView(idx, plane_map.planes[idx].id, pi_camera[row[idx]], outlines, z_near, box=box,
-                      fixed_px=(grid.stride, fixed_outlines))
+    planes = plane_map.planes
+    stride = grid.stride
+    return [PlaneView(idx, planes[idx].id, pi_camera[row[idx]], outlines, z_near, box=box,
+                      fixed_px=(stride, fixed_outlines))
             for idx, outlines, fixed_outlines, z_near, box in found]
 
 
@@ -162,11 +264,14 @@ class _ClippedPolygons:
 def _facing_camera(pk: PackedPolygons, candidates: Sequence[int],
                    T_ground_camera: np.ndarray) -> Tuple[List[int], np.ndarray]:
     """The candidates whose observable side the camera stands on (otherwise it looks at the back of
-    the face), and their planes in C, pi_C = pi_G T_GC row by row."""
+    the face), and their planes in C, pi_C = pi_G T_GC row by row. The camera's side is pi_C's
+    last entry, n . t + d (the bottom row of T_GC is (0, 0, 0, 1)), so one product gives both."""
     cand = np.asarray(candidates, dtype=np.intp).reshape(-1)
-    pi = pk.planes[cand]
-    front = np.einsum("ij,j->i", pi[:, :3], T_ground_camera[:3, 3]) + pi[:, 3] > BACK_FACE_EPS
-    return cand[front].tolist(), np.einsum("ij,jk->ik", pi[front], T_ground_camera)
+    pi_camera = np.einsum("ij,jk->ik", pk.planes[cand], T_ground_camera)
+    front = pi_camera[:, 3] > BACK_FACE_EPS
+    if front.all():
+        return cand.tolist(), pi_camera
+    return cand[front].tolist(), pi_camera[front]
 
 
 def _stack_in_camera(pk: PackedPolygons, planes: List[int], T_ground_camera: np.ndarray) -> _StackedPolygons:
@@ -174,49 +279,60 @@ def _stack_in_camera(pk: PackedPolygons, planes: List[int], T_ground_camera: np.
     R_T = T_ground_camera[:3, :3].T
     t_C = -R_T @ T_ground_camera[:3, 3]
     V = np.concatenate([pk.plane_vertices[i] for i in planes])
-    counts = [c for i in planes for c in pk.plane_counts[i]]
-    plane_of = [i for i in planes for _ in pk.plane_counts[i]]
+    counts: List[int] = []
+    plane_of: List[int] = []
+    for i in planes:
+        c = pk.plane_counts[i]
+        counts += c
+        plane_of += [i] * len(c)
     first = [0, *itertools.accumulate(counts[:-1])]
     return _StackedPolygons(np.einsum("ij,kj->ik", V, R_T) + t_C, first, counts, plane_of)
 
 
-def _clip_to_frustum(polys: _StackedPolygons, frustum: np.ndarray) -> _ClippedPolygons:
+def _clip_to_frustum(polys: _StackedPolygons, consts: _GridConstants) -> _ClippedPolygons:
     """Drop the polygons with every vertex outside one frustum plane; clip those that cross some
     plane, against just those planes (Python floats, one by one); keep the others as they are."""
     P = polys.P_camera
-    first_vertex = np.array(polys.first, np.intp)
-    outside = np.einsum("ij,kj->ik", P, frustum[:, :3]) < -frustum[:, 3]
-    # A polygon with every vertex outside one frustum plane is gone; for the others, bit j set
-    # means some vertex is outside plane j.
-    gone = np.logical_and.reduceat(outside, first_vertex, axis=0).any(axis=1).tolist()
-    cross = np.bitwise_or.reduceat(outside @ (1 << np.arange(len(frustum))), first_vertex).tolist()
-    P_list = P.tolist()
-    frustum_list = frustum.tolist()
+    first = polys.first
+    first_vertex = np.array(first, np.intp)
+    # Bit j of a vertex's word: it is outside frustum plane j. A polygon is gone when the AND of
+    # its vertices' words is not 0 (all outside one plane); it crosses the planes its OR has.
+    words = (np.einsum("ij,kj->ik", P, consts.frustum_normals) < consts.frustum_neg_d) @ consts.bit_weights
+    every = np.bitwise_and.reduceat(words, first_vertex).tolist()
+    some = np.bitwise_or.reduceat(words, first_vertex).tolist()
+    planes_for = consts.frustum_planes_for
     kept: List[Tuple[int, int]] = []
     clipped_pts: List[List[float]] = []
     clipped_starts: List[int] = []
-    n_polys = len(polys.counts)
-    for k, (a, n, bits) in enumerate(zip(polys.first, polys.counts, cross)):
-        if gone[k]:
+    n_polys = len(first)
+    n_rows = len(P)
+    for k in range(n_polys):
+        if every[k]:
             continue
+        bits = some[k]
         if not bits:
             kept.append((k, k))
             continue
-        clipped = clip_vertex_list(P_list[a:a + n], [f for j, f in enumerate(frustum_list) if bits >> j & 1])
+        a = first[k]
+        clipped = clip_vertex_list(P[a:a + polys.counts[k]].tolist(), planes_for(bits))
         if clipped is not None:
             kept.append((k, n_polys + len(clipped_starts)))
-            clipped_starts.append(len(P) + len(clipped_pts))
+            clipped_starts.append(n_rows + len(clipped_pts))
             clipped_pts += clipped
     # Rows of polygons that cross the frustum stay in Q unused; their clipped copies follow.
-    Q = np.vstack([P, clipped_pts]) if clipped_pts else P
-    return _ClippedPolygons(Q, np.concatenate([first_vertex, np.array(clipped_starts, np.intp)]), kept)
+    if not clipped_pts:
+        return _ClippedPolygons(P, first_vertex, kept)
+    # A flat list of floats converts to an array several times faster than a list of triples.
+    Q = np.concatenate((P, np.array(list(itertools.chain.from_iterable(clipped_pts))).reshape(-1, 3)))
+    return _ClippedPolygons(Q, np.concatenate((first_vertex, np.array(clipped_starts, np.intp))), kept)
 
 
-def _project(P_camera: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Full-resolution pixels (col, row) of camera-frame points; depth floored at the near plane."""
+def _project(P_camera: np.ndarray, f_px: np.ndarray, c_px: np.ndarray) -> np.ndarray:
+    """Full-resolution pixels (col, row) of camera-frame points; depth floored at the near plane.
+    ``f_px`` is (f_x, f_y), ``c_px`` (c_x, c_y)."""
     px = P_camera[:, :2] / np.maximum(P_camera[:, 2:], NEAR_PLANE)
-    px *= (K[0, 0], K[1, 1])
-    px += K[:2, 2]
+    px *= f_px
+    px += c_px
     return px
 
 
@@ -234,23 +350,37 @@ def _plane_outlines(plane_of: List[int], clipped: _ClippedPolygons, px: np.ndarr
     z_min = np.minimum.reduceat(clipped.Q_camera[:, 2], starts).tolist()
     px_lo = np.minimum.reduceat(px, starts).tolist()
     px_hi = np.maximum.reduceat(px, starts).tolist()
-    seg_end = np.append(starts[1:], len(clipped.Q_camera)).tolist()
     seg = starts.tolist()
+    seg_end = seg[1:]
+    seg_end.append(len(px))
     found = []
-    i, n_kept = 0, len(clipped.kept)
+    kept = clipped.kept
+    i, n_kept = 0, len(kept)
     while i < n_kept:
-        idx = plane_of[clipped.kept[i][0]]
+        idx = plane_of[kept[i][0]]
         outlines, fixed_outlines, z_near = [], [], math.inf
         u0 = v0 = math.inf
         u1 = v1 = -math.inf
-        while i < n_kept and plane_of[clipped.kept[i][0]] == idx:
-            j = clipped.kept[i][1]
+        while i < n_kept:
+            k, j = kept[i]
+            if plane_of[k] != idx:
+                break
             a, b = seg[j], seg_end[j]
             outlines.append(px[a:b])
             fixed_outlines.append(fixed[a:b])
-            z_near = min(z_near, z_min[j])
-            (lo_u, lo_v), (hi_u, hi_v) = px_lo[j], px_hi[j]
-            u0, v0, u1, v1 = min(u0, lo_u), min(v0, lo_v), max(u1, hi_u), max(v1, hi_v)
+            z = z_min[j]
+            if z < z_near:
+                z_near = z
+            lo_u, lo_v = px_lo[j]
+            hi_u, hi_v = px_hi[j]
+            if lo_u < u0:
+                u0 = lo_u
+            if lo_v < v0:
+                v0 = lo_v
+            if hi_u > u1:
+                u1 = hi_u
+            if hi_v > v1:
+                v1 = hi_v
             i += 1
         if z_near < max_range:
             found.append((idx, outlines, fixed_outlines, z_near, _grid_box(u0, v0, u1, v1, grid)))
@@ -281,30 +411,44 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
     beat what is already drawn everywhere on that box is hidden: it is skipped before
     rasterizing and its ``box`` set empty. On equal depth the plane drawn first (nearer z_near,
     then lower index) keeps the pixel.
+
+    The label image returned is the grid's buffer for this thread, not a new array (which saves
+    allocating and clearing two full images per frame): read it before the next call on the
+    same grid, which overwrites it, and do not write to it; copy it to keep it.
     """
-    h, w = grid.shape
-    ibuf = np.zeros((h, w), dtype=np.float32)
-    label = np.full((h, w), -1, dtype=np.int32)
-    cols, rows, x_img, y_img = grid.rays
+    scratch = grid._scratch()
+    ibuf, label = scratch.ibuf, scratch.label
+    for r0, r1, c0, c1 in scratch.dirty:
+        ibuf[r0:r1, c0:c1] = 0.0
+        label[r0:r1, c0:c1] = -1
+    dirty = scratch.dirty = []
+    work = _work_buffers(grid.shape)
+    consts = grid._per_frame()
+    cols, rows = consts.cols, consts.rows
+    col_span, row_span = consts.col_span, consts.row_span
+    _, _, x_img, y_img = grid.rays
     one = 1 << _SUBPIXEL_BITS
-    drawn = False  # nothing drawn yet: nothing can hide the first plane
-    for k in sorted(range(len(views)), key=lambda j: views[j].z_near):
+    order = sorted(range(len(views)), key=lambda j: views[j].z_near)
+    last = order[-1] if order else -1
+    for k in order:
         view = views[k]
         if view.box is None:
             view.box = _outline_box(view.outlines_px, grid)
         c0, r0, c1, r1 = view.box
-        n = view.pi_camera
-        if c1 < c0 or r1 < r0 or n[3] == 0:
+        n0, n1, n2, n3 = view.pi_camera.tolist()
+        if c1 < c0 or r1 < r0 or n3 == 0:
             view.box = (0, 0, -1, -1)
             continue  # off the grid, or a plane through the optical centre (seen edge-on)
-        a, b, c = -n[0] / n[3], -n[1] / n[3], -n[2] / n[3]
+        a, b, c = -n0 / n3, -n1 / n3, -n2 / n3
         # Largest inverse depth on the box, at a corner; with room for the float32 rounding of
         # the per-pixel values below (a few 1e-7 of the terms' magnitudes), so that the test
         # never skips a plane that would win a pixel.
         ia, ib = max(a * cols[c0], a * cols[c1]), max(b * rows[r0], b * rows[r1])
-        top = ia + ib + c + 1e-6 * (abs(a) * max(-cols[0], cols[-1]) + abs(b) * max(-rows[0], rows[-1]) + abs(c))
-        isub = ibuf[r0:r1 + 1, c0:c1 + 1]
-        if top <= 0 or (drawn and top <= isub.min()):
+        top = ia + ib + c + 1e-6 * (abs(a) * col_span + abs(b) * row_span + abs(c))
+        box = (slice(r0, r1 + 1), slice(c0, c1 + 1))
+        isub = ibuf[box]
+        # (With nothing drawn yet, nothing can hide the first plane.)
+        if top <= 0 or (dirty and top <= isub.min()):
             view.box = (0, 0, -1, -1)
             continue  # behind the camera on the whole box, or hidden behind what is already drawn
         if view.fixed_px is not None and view.fixed_px[0] == grid.stride:
@@ -312,14 +456,21 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
         else:
             polys = [_fixed_point(o, grid.stride) for o in view.outlines_px]
         # The box origin goes in as fillPoly's offset, in the same fixed-point units.
-        mask = np.zeros((r1 - r0 + 1, c1 - c0 + 1), np.uint8)
+        mask = work.mask[box]
+        mask.fill(0)
         cv2.fillPoly(mask, polys, 1, lineType=cv2.LINE_8, shift=_SUBPIXEL_BITS, offset=(-c0 * one, -r0 * one))
-        inv = cv2.addWeighted(x_img[r0:r1 + 1, c0:c1 + 1], a, y_img[r0:r1 + 1, c0:c1 + 1], b, c)
-        inv *= mask  # 0 ("nothing") outside the polygon: never beats the buffer, which is >= 0
-        upd = inv > isub
-        np.maximum(isub, inv, out=isub)
-        label[r0:r1 + 1, c0:c1 + 1][upd] = k
-        drawn = True
+        inv = cv2.addWeighted(x_img[box], a, y_img[box], b, c, dst=work.inv[box])
+        # Won: inside the polygon and nearer than what is drawn (the buffer is >= 0, so a pixel
+        # where the plane lies behind the camera never wins); the same wins and buffer as the
+        # plain np.maximum(buffer, inverse depth * mask), in fewer passes over the box.
+        upd = cv2.compare(inv, isub if dirty else 0.0, cv2.CMP_GT, dst=work.upd[box])
+        cv2.bitwise_and(upd, mask, dst=upd)
+        dirty.append((r0, r1 + 1, c0, c1 + 1))  # before writing: reset next time whatever happens
+        if k != last:
+            cv2.copyTo(inv, upd, isub)  # no plane after the last one reads the buffer
+        fill = work.fill[box]
+        fill.fill(k)
+        cv2.copyTo(fill, upd, label[box])
     return label
 
 
@@ -335,31 +486,35 @@ def shrink_rois(views: List[PlaneView], label: np.ndarray, grid: CameraGrid,
     sees what lies beyond the image, and pixel counts and ROIs cover the inner grid only, in its
     coordinates (what :meth:`robot.localization.localizer.Localizer.plane_rois` does)."""
     H, W = label.shape
+    stride = grid.stride
     for k, view in enumerate(views):
-        view.roi_rows = view.roi_cols = np.zeros(0, np.intp)
         view.pixels = 0
-        # A view owns pixels only inside its box (unknown: the whole grid). The crop reaches r
-        # beyond it, so only the grid's edges act as border for the erosion below.
+        # A view owns pixels only inside its box (unknown: the whole grid).
         c0, r0, c1, r1 = view.box if view.box is not None else (0, 0, W - 1, H - 1)
         # The part of the box inside the inner grid: what can be reported.
         i0, j0, i1, j1 = max(r0, pad), max(c0, pad), min(r1, H - 1 - pad), min(c1, W - 1 - pad)
         if i1 < i0 or j1 < j0:
+            view.roi_rows = view.roi_cols = np.zeros(0, np.intp)
             continue
         margin = float(margin_for(view))
-        r = int(math.ceil(margin / grid.stride))
-        r0, c0 = max(r0 - r, 0), max(c0 - r, 0)
-        own = (label[r0:r1 + r + 1, c0:c1 + r + 1] == k).view(np.uint8)
+        r = int(math.ceil(margin / stride))
+        own = cv2.compare(label[r0:r1 + 1, c0:c1 + 1], k, cv2.CMP_EQ)  # 255 where it owns
         inner = (slice(i0 - r0, i1 + 1 - r0), slice(j0 - c0, j1 + 1 - c0))
-        view.pixels = int(np.count_nonzero(own[inner]))
+        view.pixels = cv2.countNonZero(own[inner])
         if view.pixels == 0:
+            view.roi_rows = view.roi_cols = np.zeros(0, np.intp)
             continue
         view.margin_px = margin
         if r > 0:
             kernel = _KERNELS.get(r)
             if kernel is None:
                 kernel = _KERNELS[r] = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
-            own = cv2.erode(own, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+            # Beyond the box it owns nothing, so a border of zeros around the box is what it
+            # has there, and only the grid's edges act as border.
+            own = cv2.erode(own, kernel, dst=own, borderType=cv2.BORDER_CONSTANT, borderValue=0)
         # cv2.findNonZero lists (col, row) in row-major order, as np.nonzero, at half its cost.
-        found = cv2.findNonZero(np.ascontiguousarray(own[inner]))
-        if found is not None:
+        found = cv2.findNonZero(own[inner])
+        if found is None:
+            view.roi_rows = view.roi_cols = np.zeros(0, np.intp)
+        else:
             view.roi_rows, view.roi_cols = found[:, 0, 1] + (i0 - pad), found[:, 0, 0] + (j0 - pad)
