@@ -249,19 +249,21 @@ class RobotApp:
             await self._shutdown(tasks)
 
     async def _warm_up_kernels(self) -> bool:
-        """Compile the plane fit's kernels (numba, when installed), or load them from the cache,
-        before the first frame: the first start compiles for seconds (tens on a Nano), which must
-        not fall on the localization of a moving robot."""
+        """Compile the plane fit's and the obstacle scan's kernels (numba, when installed), or load
+        them from the cache, before the first frame: the first start compiles for seconds (tens on
+        a Nano), which must not fall on the localization or the protective stop of a moving robot."""
+        from robot.control import scan_kernels
         from robot.localization import fit_kernels
 
-        sd_notify.status("starting: loading the plane-fit kernels (the first start compiles them)")
-        try:
-            seconds = await self._loop.run_in_executor(self._executor, fit_kernels.warm_up)
-        except Exception as e:  # ROBOT_KERNELS=numba and they do not compile: the operator asked for them
-            self.exit_reason = f"plane-fit kernels: {type(e).__name__}: {e}".splitlines()[0]
-            log.error("%s", self.exit_reason)
-            return False
-        log.info("plane-fit kernels: %s; ready in %.1f s", fit_kernels.backend_note(), seconds)
+        sd_notify.status("starting: loading the compiled kernels (the first start compiles them)")
+        for what, kernels in (("plane-fit kernels", fit_kernels), ("obstacle-scan kernels", scan_kernels)):
+            try:
+                seconds = await self._loop.run_in_executor(self._executor, kernels.warm_up)
+            except Exception as e:  # ROBOT_KERNELS=numba and they do not compile: the operator asked for them
+                self.exit_reason = f"{what}: {type(e).__name__}: {e}".splitlines()[0]
+                log.error("%s", self.exit_reason)
+                return False
+            log.info("%s: %s; ready in %.1f s", what, kernels.backend_note(), seconds)
         return True
 
     async def _connect_chassis(self) -> bool:

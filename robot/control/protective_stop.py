@@ -35,6 +35,7 @@ import numpy as np
 from robot.base.geometry import pose_to_T_ground_robot
 from robot.config import RobotConfig
 from robot.config.safety import SafetyConfig
+from robot.control import scan_kernels
 from robot.maps.plane_map import PlaneMap
 
 CLEAR = "clear"
@@ -64,6 +65,33 @@ class SafetyDecision:
     speed_limit: float  # m/s the translation was allowed
 
 
+# One edge of a polygon for the even-odd test: (x_i, y_i, x_j - x_i, y_j - y_i), the crossing
+# then x_i when the edge is vertical (x_j == x_i: the interpolation adds 0 to x_i, exactly).
+_Edge = Tuple[float, float, float, float]
+
+
+@dataclass
+class _Polygon:
+    """A wall polygon in the wall's in-plane axes, prepared for :func:`_inside_prepared`'s test."""
+
+    box: Tuple[float, float, float, float]  # x_lo, x_hi (widened by a rounding margin), y_lo, y_hi
+    # Its edges grouped by their y span (y_i, y_j), either way round: the span alone decides which
+    # points' rows an edge crosses. Horizontal edges cross no row and are left out.
+    spans: List[Tuple[float, float, List[_Edge]]]
+
+
+def _polygon(vertices: np.ndarray) -> _Polygon:
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    margin = _ROUNDING * (1.0 + float(np.abs(vertices).max()))
+    spans: Dict[Tuple[float, float], Tuple[float, float, List[_Edge]]] = {}
+    xj, yj = vertices[-1].tolist()
+    for xi, yi in vertices.tolist():
+        if yj != yi:
+            spans.setdefault((min(yi, yj), max(yi, yj)), (yi, yj, []))[2].append((xi, yi, xj - xi, yj - yi))
+        xj, yj = xi, yi
+    return _Polygon((float(lo[0]) - margin, float(hi[0]) + margin, float(lo[1]), float(hi[1])), list(spans.values()))
+
+
 @dataclass
 class _Wall:
     n: np.ndarray  # (3,)
@@ -72,6 +100,10 @@ class _Wall:
     polygons_2d: List[np.ndarray]  # each (K, 2) in those axes
     lo: np.ndarray  # xy bounding box of the wall, for the range pre-filter
     hi: np.ndarray
+    off_plane: float = 0.0  # m: how far its farthest vertex lies off the plane (a map allows about 1 mm)
+    polygons: List[_Polygon] = field(default_factory=list)  # polygons_2d prepared for the test
+    # The polygons for the compiled test: all vertices (V, 2), each polygon's first (P + 1), boxes (P, 4).
+    flat: Tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros((0, 2)), np.zeros(1, np.int64), np.zeros((0, 4)))
 
 
 def _wall_geometry(plane_map: PlaneMap) -> List[_Wall]:
@@ -86,21 +118,64 @@ def _wall_geometry(plane_map: PlaneMap) -> List[_Wall]:
         R = np.vstack([a, b])
         polys = [np.asarray(poly, dtype=float) @ R.T for poly in p.polygons]
         v = p.vertices
-        walls.append(_Wall(n, float(p.d), R, polys, v[:, :2].min(axis=0), v[:, :2].max(axis=0)))
+        prepared = [_polygon(q) for q in polys]
+        flat = (np.ascontiguousarray(np.vstack(polys)), np.cumsum([0] + [len(q) for q in polys]).astype(np.int64),
+                np.array([q.box for q in prepared]).reshape(-1, 4))
+        walls.append(_Wall(n, float(p.d), R, polys, v[:, :2].min(axis=0), v[:, :2].max(axis=0),
+                           float(np.abs(v @ n + p.d).max()), prepared, flat))
     return walls
 
 
-def _inside_polygon(pts: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Even-odd rule, vectorised over points; polygons have few vertices."""
-    x, y = pts[:, 0], pts[:, 1]
-    inside = np.zeros(len(pts), dtype=bool)
-    xj, yj = poly[-1]
-    with np.errstate(divide="ignore", invalid="ignore"):  # once: entering it costs as much as an edge
-        for xi, yi in poly.tolist():
-            crosses = (yi > y) != (yj > y)
-            x_cross = (xj - xi) * (y - yi) / (yj - yi) + xi
-            inside ^= crosses & (x < x_cross)
-            xj, yj = xi, yi
+# Relative margin that covers the rounding of the containment and distance tests many times over
+# (they round to about 1e-15 of the coordinates): a cull by bounding box with it drops only what
+# the exact tests would drop too.
+_ROUNDING = 1e-9
+
+
+def _inside_prepared(x: np.ndarray, y: np.ndarray, poly: _Polygon) -> np.ndarray:
+    """Whether each point is inside the polygon by the even-odd rule: for each edge (x_i, y_i) to
+    (x_j, y_j), with (x_j, y_j) the vertex before, the point's row crosses it when
+    ``(y_i > y) != (y_j > y)``, at ``(x_j - x_i) * (y - y_i) / (y_j - y_i) + x_i``; the point is
+    inside when an odd number of crossings lie to its right (``x <`` the crossing). The same
+    comparisons and crossings as that plain loop over the edges (the tests keep it), without what
+    cannot change the answer: horizontal edges, a span's row test repeated per edge, the
+    interpolation along vertical edges."""
+    inside = np.zeros(len(x), dtype=bool)
+    for yi, yj, edges in poly.spans:
+        right = None  # whether the point is left of each crossing, XOR over the span's edges
+        for xi, yi_e, dx, dy in edges:
+            left = x < (xi if dx == 0.0 else dx * (y - yi_e) / dy + xi)
+            right = left if right is None else np.logical_xor(right, left, out=right)
+        crosses = (yi > y) != (yj > y)
+        inside ^= crosses & right
+    return inside
+
+
+def _inside_polygons(q: np.ndarray, wall: _Wall) -> np.ndarray:
+    """Whether each point (in-plane axes) is in any of the wall's polygons (:func:`_inside_prepared`),
+    each polygon tested only on the points in its bounding box.
+
+    That cull is exact. Below or above the polygon (y outside [y_lo, y_hi]) no edge crosses the
+    point's row, compared exactly. Left of it every crossing is to the right of the point, and a
+    closed polygon crosses any row an even number of times; right of it none is. Crossings are
+    interpolated between their edge's end points to within about 1e-15 of the coordinates, far
+    inside the boxes' margin in x."""
+    qx, qy = q[:, 0], q[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if len(wall.polygons) == 1:  # the box tests would cost as much as the polygon's
+            return _inside_prepared(qx, qy, wall.polygons[0])
+        inside = np.zeros(len(q), dtype=bool)
+        x_lo, x_hi, y_lo, y_hi = float(qx.min()), float(qx.max()), float(qy.min()), float(qy.max())
+        for poly in wall.polygons:
+            bx0, bx1, by0, by1 = poly.box
+            if bx1 < x_lo or bx0 > x_hi or by1 < y_lo or by0 > y_hi:
+                continue
+            if bx0 <= x_lo and bx1 >= x_hi and by0 <= y_lo and by1 >= y_hi:  # its box holds them all
+                inside |= _inside_prepared(qx, qy, poly)
+                continue
+            sel = ((qx >= bx0) & (qx <= bx1) & (qy >= by0) & (qy <= by1)).nonzero()[0]
+            if len(sel):
+                inside[sel[_inside_prepared(qx[sel], qy[sel], poly)]] = True
     return inside
 
 
@@ -110,16 +185,66 @@ def depth_points_robot(depth_m: np.ndarray, K: np.ndarray, T_robot_camera: np.nd
     may be the camera's raw units with ``depth_scale`` metres each: only the sampled pixels are
     converted (as ``DepthFrame.depth_m`` would, in float32)."""
     z = _metres(depth_m[::stride, ::stride], depth_scale)
-    h, w = z.shape
+    p_robot = _camera_points(z, _pixel_rays(z.shape, K, stride), min_range, max_range) @ T_robot_camera[:3, :3].T
+    _add_columns(p_robot, T_robot_camera[:3, 3])
+    return p_robot
+
+
+def _pixel_rays(shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.ndarray, np.ndarray]:
+    """((u - c_x) / f_x, (v - c_y) / f_y) of every sampled pixel (u, v), each (h, w) for the sampled
+    shape: the part of the back-projection that only the camera's shape, K and stride decide."""
+    h, w = shape
     v, u = np.mgrid[0:h, 0:w]
     u = u * stride
     v = v * stride
+    x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    x.flags.writeable = False  # shared by every frame of the camera
+    y.flags.writeable = False
+    return x, y
+
+
+def _camera_points(z: np.ndarray, rays: Tuple[np.ndarray, np.ndarray], min_range: float, max_range: float) -> np.ndarray:
+    """The sampled pixels with a valid depth ``z`` (m), in camera coordinates (N, 3), row by row."""
     ok = np.isfinite(z) & (z > min_range) & (z < max_range)
     z = z[ok].astype(float)
-    x_c = (u[ok] - K[0, 2]) / K[0, 0] * z
-    y_c = (v[ok] - K[1, 2]) / K[1, 1] * z
-    p_camera = np.stack([x_c, y_c, z], axis=1)
-    return p_camera @ T_robot_camera[:3, :3].T + T_robot_camera[:3, 3]
+    p_camera = np.empty((len(z), 3))
+    np.multiply(rays[0][ok], z, out=p_camera[:, 0])
+    np.multiply(rays[1][ok], z, out=p_camera[:, 1])
+    p_camera[:, 2] = z
+    return p_camera
+
+
+def _in_band(p: np.ndarray, t: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """The rows of ``p + t`` whose z is within [lo, hi] (``p`` is changed)."""
+    _add_columns(p, t)
+    return _rows(p, (p[:, 2] >= lo) & (p[:, 2] <= hi))
+
+
+def _add_columns(p: np.ndarray, t: np.ndarray) -> None:
+    """``p += t`` for (N, k) ``p``, one column at a time: numpy's broadcast over rows of three
+    costs twice as much (the same sums)."""
+    for j in range(p.shape[1]):
+        p[:, j] += t[j]
+
+
+def _rows(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``a[mask]`` for a 2-D ``a`` and a boolean ``mask`` of its rows, the same array: numpy's
+    boolean index of rows costs five times the index list and ``take``."""
+    return a.take(mask.nonzero()[0], axis=0)
+
+
+def _compact(mem: np.ndarray, mem_t: np.ndarray, keys: Optional[np.ndarray], keep: np.ndarray
+             ) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+    """The memory's points, times and (when known) cell keys where ``keep``."""
+    idx = keep.nonzero()[0]
+    return mem.take(idx, axis=0), mem_t[idx], (keys[idx] if keys is not None else None)
+
+
+def _cell_keys(xy: np.ndarray, cell_size: float) -> np.ndarray:
+    """One int64 key per grid cell of each point (x in the high half): a 1-D unique is several
+    times cheaper than np.unique over rows; cells are within 2^31 of the origin on any site."""
+    cell = np.floor(xy / cell_size).astype(np.int64)
+    return (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
 
 
 def _metres(depth: np.ndarray, depth_scale: float) -> np.ndarray:
@@ -206,6 +331,26 @@ class ProtectiveStop:
         self._half_x = c.footprint_length / 2.0
         self._half_y = c.footprint_width / 2.0
         self._sweep_radius = math.hypot(self._half_x + abs(c.footprint_offset_x), self._half_y) + c.rotation_margin
+        # All walls' pre-filters in one comparison, v < bound for any column skips the wall: the
+        # range test (the pose beyond max_range of the wall's box), and the box a point must lie in
+        # to be explained by the wall (near the plane and inside a polygon puts it within
+        # tolerance + off_plane of the vertices' box; the points' box outside it skips the wall).
+        # Negated columns turn "x > hi" into "-x < -hi", the same comparison.
+        reach = c.max_range + c.wall_tolerance
+        lo = np.array([w.lo for w in self._walls]).reshape(-1, 2)
+        hi = np.array([w.hi for w in self._walls]).reshape(-1, 2)
+        margin = np.array([c.wall_tolerance + w.off_plane + 1e-6 + _ROUNDING * float(np.abs(np.r_[w.lo, w.hi]).max())
+                           for w in self._walls]).reshape(-1, 1)
+        self._wall_bounds = np.hstack([lo - reach, -(hi + reach), lo - margin, -(hi + margin)])
+        # (shape, stride, K) -> the sampled pixels' rays: built once per camera stream.
+        self._rays: Dict[tuple, Tuple[np.ndarray, np.ndarray]] = {}
+        # (memory points, their times, their cell keys): the keys of the memory this object wrote
+        # last, one per cell; only while ``memory`` still holds those very arrays.
+        self._memory_keys: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None
+        if len(self.memory[0]) == 0:
+            self._memory_keys = (self.memory[0], self.memory[1], np.zeros(0, dtype=np.int64))
+        # The kernels compile at their first call; the app loads them before its first frame
+        # (scan_kernels.warm_up, with the plane fit's).
 
     # -- per frame ---------------------------------------------------------------------------
 
@@ -220,102 +365,263 @@ class ProtectiveStop:
         ``depth_m`` is in metres, or in units of ``depth_scale`` metres."""
         c = self.config
         cam = self.robot.camera(camera)
+        compiled = scan_kernels.backend() == "numba"
         # The stride is meant at the configured resolution: a decimated frame is sampled as densely.
         stride = max(1, int(round(c.stride * depth_m.shape[1] / float(cam.width))))
-        p_robot = depth_points_robot(depth_m, K, cam.T_robot_camera, stride, self.robot.localizer.min_range,
-                                     c.max_range, depth_scale)
-        band = (p_robot[:, 2] >= c.min_height) & (p_robot[:, 2] <= c.max_height)
-        p_robot = p_robot[band]
-        ignored = 0
-        if pose is not None and self._walls and len(p_robot):
-            wall = self._explained_by_walls(p_robot, pose)
-            near = self._near_footprint(p_robot[:, :2], c.always_distance)
-            keep = ~wall | near
-            ignored = int(np.count_nonzero(~keep))
-            p_robot = p_robot[keep]
+        shape = (-(-depth_m.shape[0] // stride), -(-depth_m.shape[1] // stride))  # of depth_m[::stride, ::stride]
+        rays = self._pixel_rays(shape, K, stride)
+        min_range = self.robot.localizer.min_range
+        p_camera = None
+        if compiled:
+            p_camera = scan_kernels.camera_points(depth_m, stride, shape, depth_scale, min_range, c.max_range, rays)
+        if p_camera is None:
+            p_camera = _camera_points(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
+        p_robot = p_camera @ cam.T_robot_camera[:3, :3].T
+        band = scan_kernels.in_band if compiled else _in_band
+        p_robot = band(p_robot, cam.T_robot_camera[:3, 3], c.min_height, c.max_height)
+        points_xy, ignored = None, 0
+        T_ground_robot = pose_to_T_ground_robot(*pose) if pose is not None else None
+        if T_ground_robot is not None and self._walls and len(p_robot):
+            explained = self._explained_by_walls(p_robot, pose, T_ground_robot, compiled)
+            kept = None
+            if compiled:
+                kept = scan_kernels.kept_points(p_robot, explained, c.footprint_offset_x, self._half_x, self._half_y,
+                                                c.always_distance)
+            points_xy, ignored = kept if kept is not None else self._kept_points(p_robot, explained)
+        if points_xy is None:
+            points_xy = np.ascontiguousarray(p_robot[:, :2])
         near_blind = self._near_blind(depth_m)
-        scan = ObstacleScan(camera, float(t), np.ascontiguousarray(p_robot[:, :2]), ignored, near_blind)
+        scan = ObstacleScan(camera, float(t), points_xy, ignored, near_blind)
         self.scans[camera] = scan
-        if pose is not None:
-            self._remember(scan, camera, depth_m, K, pose, depth_scale)
+        if T_ground_robot is not None:
+            self._remember(scan, camera, depth_m, K, T_ground_robot, depth_scale)
         return scan
+
+    def _kept_points(self, p_robot: np.ndarray, explained: np.ndarray) -> Tuple[np.ndarray, int]:
+        """(x, y) of the points no wall explains or near the footprint, and how many were dropped."""
+        wall = explained.nonzero()[0]
+        ignored = 0
+        if len(wall):
+            # Only an explained point can be kept for being near: test just those.
+            drop = wall[~self._near_footprint(p_robot.take(wall, axis=0), self.config.always_distance)]
+            ignored = len(drop)
+            if ignored:
+                keep = np.ones(len(p_robot), dtype=bool)
+                keep[drop] = False
+                p_robot = _rows(p_robot, keep)
+        return np.ascontiguousarray(p_robot[:, :2]), ignored
+
+    def _pixel_rays(self, shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.ndarray, np.ndarray]:
+        K = np.asarray(K)
+        key = (shape, stride, K.dtype.str, K.shape, K.tobytes())
+        rays = self._rays.get(key)
+        if rays is None:
+            if len(self._rays) >= 16:  # K changes only with a new calibration: never grows without bound
+                self._rays.clear()
+            rays = self._rays[key] = _pixel_rays(shape, K, stride)
+        return rays
 
     def _near_blind(self, depth_m: np.ndarray) -> bool:
         h, w = depth_m.shape
         centre = depth_m[h // 4:3 * h // 4, w // 4:3 * w // 4]
-        if centre.dtype.kind in "ui":  # raw units: 0 is the camera's "no depth"
-            bad = np.count_nonzero(centre <= 0)
-        else:
-            bad = np.count_nonzero(~np.isfinite(centre) | (centre <= 0.0))
-        return bool(bad > self.config.near_blind_fraction * centre.size)
+        rows, cols = centre.shape
+        limit = self.config.near_blind_fraction * centre.size
+        # Counted a block of rows at a time, until the rest cannot change the answer: a view with
+        # little invalid depth is decided about half-way (the count reads a whole frame's worth of
+        # memory otherwise).
+        bad, done = 0, 0
+        step = max(1, min(rows, math.ceil(rows - limit / max(cols, 1)) + rows // 8))
+        while done < rows:
+            block = centre[done:done + step]
+            done += len(block)
+            if block.dtype.kind == "u":  # raw units: 0 is the camera's "no depth"
+                bad += block.size - np.count_nonzero(block)
+            elif block.dtype.kind == "i":
+                bad += np.count_nonzero(block <= 0)
+            else:
+                bad += np.count_nonzero(~np.isfinite(block) | (block <= 0.0))
+            if bad > limit:
+                return True
+            if bad + (rows - done) * cols <= limit:
+                return False
+            step = max(1, rows // 8)
+        return bool(bad > limit)
 
     def _remember(self, scan: ObstacleScan, camera: str, depth_m: np.ndarray, K: np.ndarray,
-                  pose: Tuple[float, float, float], depth_scale: float = 1.0) -> None:
+                  T_ground_robot: np.ndarray, depth_scale: float = 1.0) -> None:
         """Forget what this frame sees through and what is too old; add this frame's points."""
         c = self.config
-        mem_xy, mem_t = self.memory
+        compiled = scan_kernels.backend() == "numba"
+        mem, mem_t = self.memory
+        known = self._memory_keys
+        keys = known[2] if known is not None and known[0] is mem and known[1] is mem_t else None
         keep = (scan.t - mem_t) <= c.memory_time
-        mem, mem_t = mem_xy[keep], mem_t[keep]
+        if not keep.all():
+            mem, mem_t, keys = _compact(mem, mem_t, keys, keep)
+        alive = None  # the remembered points this frame does not see through (None: all)
         if len(mem):
             cam = self.robot.camera(camera)
-            T_ground_camera = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
+            T_ground_camera = T_ground_robot @ cam.T_robot_camera
             R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
             # The remembered points are (x, y) only: test them at mid-height of the band the camera sees.
-            z_test = float(np.clip(o[2], c.min_height, c.max_height))
-            p_ground = np.column_stack([mem, np.full(len(mem), z_test)])
-            p_cam = (p_ground - o) @ R
-            z = p_cam[:, 2]
-            h, w = depth_m.shape
-            with np.errstate(divide="ignore", invalid="ignore"):
-                u = np.round(K[0, 0] * p_cam[:, 0] / z + K[0, 2]).astype(np.int64, copy=False)
-                v = np.round(K[1, 1] * p_cam[:, 1] / z + K[1, 2]).astype(np.int64, copy=False)
-            in_view = (z > self.robot.localizer.min_range) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            seen_through = np.zeros(len(mem), dtype=bool)
-            idx = np.nonzero(in_view)[0]
-            if len(idx):
-                d = _metres(depth_m[v[idx], u[idx]], depth_scale)
-                seen_through[idx] = np.isfinite(d) & (d > z[idx] + c.wall_tolerance)
-            mem, mem_t = mem[~seen_through], mem_t[~seen_through]
+            z_test = float(o[2]) if c.min_height < o[2] < c.max_height else float(np.clip(o[2], c.min_height,
+                                                                                           c.max_height))
+            p_ground_o = np.empty((len(mem), 3))  # the points less the camera position
+            np.subtract(mem, o[:2], out=p_ground_o[:, :2])
+            p_ground_o[:, 2] = z_test - o[2]
+            p_cam = p_ground_o @ R
+            seen = None
+            if compiled:
+                seen = scan_kernels.seen_through(p_cam, K, self.robot.localizer.min_range, depth_m, depth_scale,
+                                                 c.wall_tolerance)
+            if seen is None:
+                seen = self._seen_through(p_cam, K, depth_m, depth_scale)
+            if seen.any():
+                alive = ~seen
         if len(scan.points_xy):
-            T = pose_to_T_ground_robot(*pose)
-            new = scan.points_xy @ T[:2, :2].T + T[:2, 3]
-            mem = np.vstack([mem, new])
-            mem_t = np.concatenate([mem_t, np.full(len(new), scan.t)])
-        if len(mem):  # one point per grid cell (the newest): the memory stays small however long the robot looks
-            cell = np.floor(mem / c.memory_cell).astype(np.int64)
-            # One int64 key per cell (x in the high half): a 1-D unique, several times cheaper
-            # than np.unique over rows; cells are within 2^31 of the origin on any site.
-            key = (cell[:, 0] << 32) + (cell[:, 1] & 0xFFFFFFFF)
-            order = np.argsort(-mem_t, kind="stable")
-            _, first = np.unique(key[order], return_index=True)
-            pick = np.sort(order[first])
-            mem, mem_t = mem[pick], mem_t[pick]
+            new = scan.points_xy @ T_ground_robot[:2, :2].T
+            _add_columns(new, T_ground_robot[:2, 3])
+            merged = None
+            if keys is not None and compiled:
+                merged = scan_kernels.merge_cells(keys, mem_t, np.ones(len(mem), dtype=bool) if alive is None else alive,
+                                                  new, scan.t, c.memory_cell)
+            if merged is not None:
+                stays, pick, new_keys = merged
+                mem, mem_t, keys = _compact(mem, mem_t, keys, stays)
+                mem = np.concatenate([mem, new.take(pick, axis=0)])
+                mem_t = np.concatenate([mem_t, np.full(len(pick), scan.t)])
+                keys = np.concatenate([keys, new_keys])
+            else:
+                if alive is not None:
+                    mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
+                if keys is not None:
+                    mem, mem_t, keys = self._add_to_cells(mem, mem_t, keys, new, scan.t)
+                else:
+                    mem, mem_t, keys = self._one_per_cell(np.vstack([mem, new]),
+                                                          np.concatenate([mem_t, np.full(len(new), scan.t)]))
+        else:
+            if alive is not None:
+                mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
+            if keys is None and len(mem):
+                mem, mem_t, keys = self._one_per_cell(mem, mem_t)
         if len(mem) > c.memory_points:  # bounded: keep the newest
             mem, mem_t = mem[-c.memory_points:], mem_t[-c.memory_points:]
+            keys = keys[-c.memory_points:] if keys is not None else None
         self.memory = (mem, mem_t)
+        self._memory_keys = (mem, mem_t, keys) if keys is not None else None
 
-    def _explained_by_walls(self, p_robot: np.ndarray, pose: Tuple[float, float, float]) -> np.ndarray:
-        T = pose_to_T_ground_robot(*pose)
-        p_ground = p_robot @ T[:3, :3].T + T[:3, 3]
+    def _seen_through(self, p_cam: np.ndarray, K: np.ndarray, depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+        """Which points (camera frame) the frame shows something farther than at their pixel."""
+        z = p_cam[:, 2]
+        h, w = depth_m.shape
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.round(K[0, 0] * p_cam[:, 0] / z + K[0, 2]).astype(np.int64, copy=False)
+            v = np.round(K[1, 1] * p_cam[:, 1] / z + K[1, 2]).astype(np.int64, copy=False)
+        # As unsigned, a negative index is above any image size: one comparison per bound pair.
+        in_view = (z > self.robot.localizer.min_range) & (u.view(np.uint64) < w) & (v.view(np.uint64) < h)
+        seen = np.zeros(len(p_cam), dtype=bool)
+        idx = in_view.nonzero()[0]
+        if len(idx):
+            d = _metres(depth_m[v[idx], u[idx]], depth_scale)
+            seen[idx] = np.isfinite(d) & (d > z[idx] + self.config.wall_tolerance)
+        return seen
+
+    def _one_per_cell(self, mem: np.ndarray, mem_t: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One point per grid cell, the newest (of equal times the first), in memory order: the
+        memory stays small however long the robot looks. Returns points, times and cell keys."""
+        key = _cell_keys(mem, self.config.memory_cell)
+        order = np.argsort(-mem_t, kind="stable")
+        _, first = np.unique(key[order], return_index=True)
+        pick = np.sort(order[first])
+        return mem[pick], mem_t[pick], key[pick]
+
+    def _add_to_cells(self, mem: np.ndarray, mem_t: np.ndarray, keys: np.ndarray, new: np.ndarray,
+                      t: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``_one_per_cell`` of the memory (one point per cell already, ``keys`` theirs) with the
+        points ``new`` of time ``t`` appended, without sorting the memory again: a cell's newest
+        point of the new ones is its first; it replaces the remembered one only if that is older
+        (of equal times the remembered one comes first)."""
+        cell = np.floor(new / self.config.memory_cell).astype(np.int64)
+        cx, cy = cell[:, 0], cell[:, 1]
+        x0, y0, x1, y1 = int(cx.min()), int(cy.min()), int(cx.max()), int(cy.max())
+        nx, ny = x1 - x0 + 1, y1 - y0 + 1
+        windowed = nx * ny <= 1 << 16 and -(1 << 31) <= min(x0, y0) and max(x1, y1) < 1 << 31
+        if windowed:
+            # Cells numbered within the frame's window fit 16 bits, which numpy sorts stably by radix
+            # (several times faster than the keys). Inside 32 bits a cell and its key are one-to-one.
+            ids = ((cx - x0) * ny + (cy - y0)).astype(np.uint16)
+        else:
+            ids = (cx << 32) + (cy & 0xFFFFFFFF)
+        order = np.argsort(ids, kind="stable")
+        sorted_ids = ids[order]
+        first = np.empty(len(order), dtype=bool)
+        first[0] = True
+        np.not_equal(sorted_ids[1:], sorted_ids[:-1], out=first[1:])
+        cells, pick = sorted_ids[first], order[first]
+        if len(keys):
+            if windowed:  # the remembered cells (a key's halves) as ids, where inside the window
+                dx = (keys >> 32) - x0
+                dy = ((keys << 32) >> 32) - y0
+                inside = ((dx.view(np.uint64) < nx) & (dy.view(np.uint64) < ny)).nonzero()[0]
+                old_ids = dx[inside] * ny + dy[inside]
+            else:
+                inside, old_ids = None, keys
+            at = np.searchsorted(cells, old_ids)
+            np.minimum(at, len(cells) - 1, out=at)
+            shared = cells[at] == old_ids
+            if shared.any():
+                old = shared.nonzero()[0] if inside is None else inside[shared]
+                at = at[shared]
+                newer = t > mem_t[old]
+                if not newer.all():
+                    stays = np.ones(len(cells), dtype=bool)
+                    stays[at[~newer]] = False
+                    pick = pick[stays]
+                if newer.any():
+                    keep = np.ones(len(mem), dtype=bool)
+                    keep[old[newer]] = False
+                    mem, mem_t, keys = _rows(mem, keep), mem_t[keep], keys[keep]
+        pick = np.sort(pick)
+        picked = cell.take(pick, axis=0)
+        return (np.concatenate([mem, new.take(pick, axis=0)]), np.concatenate([mem_t, np.full(len(pick), t)]),
+                np.concatenate([keys, (picked[:, 0] << 32) + (picked[:, 1] & 0xFFFFFFFF)]))
+
+    def _explained_by_walls(self, p_robot: np.ndarray, pose: Tuple[float, float, float], T_ground_robot: np.ndarray,
+                            compiled: bool = False) -> np.ndarray:
+        p_ground = p_robot @ T_ground_robot[:3, :3].T
+        if compiled:
+            x_lo, x_hi, y_lo, y_hi = scan_kernels.to_ground(p_ground, T_ground_robot[:3, 3])
+        else:
+            _add_columns(p_ground, T_ground_robot[:3, 3])
+            gx, gy = p_ground[:, 0], p_ground[:, 1]
+            x_lo, x_hi, y_lo, y_hi = gx.min(), gx.max(), gy.min(), gy.max()
         tol = self.config.wall_tolerance
         explained = np.zeros(len(p_ground), dtype=bool)
-        reach = self.config.max_range + tol
         xy = np.asarray(pose[:2])
-        for w in self._walls:
-            if np.any(xy < w.lo - reach) or np.any(xy > w.hi + reach):
+        # The walls within range of the pose whose box the points reach: no other wall can explain
+        # any of them, so skipping those changes nothing.
+        v = np.array([xy[0], xy[1], -xy[0], -xy[1], x_hi, y_hi, -x_lo, -y_lo])
+        some = False
+        for k in (~(v < self._wall_bounds).any(axis=1)).nonzero()[0].tolist():
+            w = self._walls[k]
+            dist = p_ground @ w.n
+            if compiled:
+                idx, rows = scan_kernels.close_points(dist, w.d, tol, explained, p_ground)
+                if len(idx):
+                    scan_kernels.mark_inside(rows @ w.R_plane.T, w.flat, idx, explained)
                 continue
-            dist = p_ground @ w.n + w.d
+            dist += w.d
             close = np.abs(dist) < tol
-            if not close.any():
-                continue
-            idx = np.nonzero(close & ~explained)[0]
+            if some:
+                close &= ~explained
+            idx = close.nonzero()[0]
             if len(idx) == 0:
                 continue
-            q = p_ground[idx] @ w.R_plane.T
-            inside = np.zeros(len(idx), dtype=bool)
-            for poly in w.polygons_2d:
-                inside |= _inside_polygon(q, poly)
-            explained[idx[inside]] = True
+            q = p_ground.take(idx, axis=0) @ w.R_plane.T
+            inside = _inside_polygons(q, w)
+            if inside.any():
+                explained[idx[inside]] = True
+                some = True
         return explained
 
     def _near_footprint(self, xy: np.ndarray, distance: float) -> np.ndarray:
