@@ -29,6 +29,8 @@ def test_gyro_samples_become_yaw_rate_about_the_robot_z_axis():
     written = []
 
     class _Recorder:
+        active = True
+
         def write(self, topic, t, message):
             written.append((topic, dict(message)))
 
