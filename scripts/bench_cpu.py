@@ -405,10 +405,14 @@ def kernel_load_times() -> Dict[str, Any]:
 
     out["numba"] = numba.__version__
     out["compile_s"] = fit_kernels.warm_up()
+    from robot.localization import integrity_kernels
+
+    out["integrity_compile_s"] = integrity_kernels.warm_up()
     out["scan_compile_s"] = scan_kernels.warm_up()
-    probe = ("import time; t0 = time.perf_counter(); from robot.localization import fit_kernels; "
+    probe = ("import time; t0 = time.perf_counter(); from robot.localization import fit_kernels, integrity_kernels; "
              "from robot.control import scan_kernels; "
-             "s = fit_kernels.warm_up() + scan_kernels.warm_up(); print(time.perf_counter() - t0, s)")
+             "s = fit_kernels.warm_up() + integrity_kernels.warm_up() + scan_kernels.warm_up(); "
+             "print(time.perf_counter() - t0, s)")
     env = dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_CACHE_DIR=cache)
     p = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env, timeout=300)
     if p.returncode == 0 and p.stdout.split():
@@ -1192,8 +1196,9 @@ def report_localizer(r: Dict[str, Any], m_here: Dict[str, float]) -> List[str]:
     k = r.get("kernels", {})
     if k.get("backend") == "numba":
         lines.append(f"Compiled kernels: numba {k['numba']} ({k['note']}); compiling them into an empty cache took "
-                     f"{k['compile_s']:.1f} s for the plane fit's and {_f(k.get('scan_compile_s'), '{:.1f}')} s for the "
-                     "obstacle scan's (a first start), loading both from the cache in a fresh process "
+                     f"{k['compile_s']:.1f} s for the plane fit's, {_f(k.get('integrity_compile_s'), '{:.1f}')} s for the "
+                     f"integrity checks' and {_f(k.get('scan_compile_s'), '{:.1f}')} s for the obstacle scan's (a first "
+                     "start), loading all from the cache in a fresh process "
                      f"{_f(k.get('cached_s'), '{:.2f}')} s ({_f(k.get('cached_total_s'), '{:.2f}')} s with importing "
                      "numba and the modules). The numpy row alternates with the kernels' runs.")
     elif k:

@@ -253,10 +253,11 @@ class RobotApp:
         them from the cache, before the first frame: the first start compiles for seconds (tens on
         a Nano), which must not fall on the localization or the protective stop of a moving robot."""
         from robot.control import scan_kernels
-        from robot.localization import fit_kernels
+        from robot.localization import fit_kernels, integrity_kernels
 
         sd_notify.status("starting: loading the compiled kernels (the first start compiles them)")
-        for what, kernels in (("plane-fit kernels", fit_kernels), ("obstacle-scan kernels", scan_kernels)):
+        for what, kernels in (("plane-fit kernels", fit_kernels), ("integrity kernels", integrity_kernels),
+                              ("obstacle-scan kernels", scan_kernels)):
             try:
                 seconds = await self._loop.run_in_executor(self._executor, kernels.warm_up)
             except Exception as e:  # ROBOT_KERNELS=numba and they do not compile: the operator asked for them

@@ -1,5 +1,7 @@
 """Integrity of a localization: an honest covariance, the consistency checks and protection levels
-(docs/localization-integrity.md). Pure numpy.
+(docs/localization-integrity.md). numpy; the stack, the subsets' solutions and the separation
+statistics also run as compiled kernels (integrity_kernels, numba, when the plane fit's backend is
+numba), which the numpy code here is the reference for.
 
 Each fitted plane gives a measurement y = (d_R, psi_R, tilt_R) in the robot frame: the offset
 of the plane from the robot origin, the heading of its normal and its elevation. For a map plane
@@ -49,12 +51,14 @@ import numpy as np
 
 from robot.base.geometry import wrap_angle
 from robot.base.stats import chi2_quantile
+from robot.localization import integrity_kernels
 
 # Which directions are observable is decided in (x, y, phi) with 1 rad counted as 1 m.
 UNOBSERVED_VARIANCE = 1.0  # m^2 or rad^2 floor for a direction no plane constrains
 CAMERA_PARAMS = 7  # depth scale, mount position (3), mount angles (3)
 _EYE3 = np.eye(3)
 _FLOOR3 = _EYE3 * 1e-14  # keeps a plane's own covariance invertible where a row is (nearly) exact
+_DIAGONAL_FLOOR = 1e-14  # keeps R positive definite when a plane's rows are (nearly) exact
 PLANE_PARAMS = 3  # offset along the normal, turn about the vertical, out of plumb
 
 
@@ -115,31 +119,34 @@ def observation(plane_id: str, camera: str, n_ground: np.ndarray, d_ground: floa
     matcher's systematic error, the built wall's local shape), in the covariance only;
     ``lever_ground``: robot position minus the fitted patch's centre in G (a turned wall moves its
     offset by the turn times that lever along the wall)."""
-    n0, n1, n2 = float(n_robot[0]), float(n_robot[1]), float(n_robot[2])
+    n0, n1, n2 = np.asarray(n_robot, float)[:3].tolist()
     h2 = n0 * n0 + n1 * n1
-    g0, g1, g2 = float(n_ground[0]), float(n_ground[1]), float(n_ground[2])
+    g0, g1, g2 = np.asarray(n_ground, float)[:3].tolist()
     gh = math.hypot(g0, g1)
     if h2 < 0.3**2 or gh < 0.3:
         return None
-    y = np.array([d_robot, math.atan2(n1, n0), math.asin(max(-1.0, min(1.0, n2)))])
-    H = np.array([[g0, g1, 0.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0]])
-    h0 = np.array([d_ground, math.atan2(g1, g0), math.asin(max(-1.0, min(1.0, g2)))])
     R_weight = J_fit @ fit_cov @ J_fit.T * inflation + own_extra
     R_own = R_weight if own_unweighted is None else R_weight + own_unweighted
     # Camera: the depth scale stretches d_C; a mount offset dt moves d_R by dt . n; a mount turn
     # dtheta (robot frame) turns the measured normal by n x dtheta, so psi by (n2 n0, n2 n1, -h2) / h2
     # . dtheta and the elevation by (-n1, n0, 0) / sqrt(h2) . dtheta, and moves d_R by (n x t) . dtheta.
-    t0, t1, t2 = (float(v) for v in t_robot_camera)
+    t0, t1, t2 = np.asarray(t_robot_camera, float)[:3].tolist()
     hs = math.sqrt(h2)
-    G_cam = np.array([
-        [d_camera, n0, n1, n2, n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0],
-        [0.0, 0.0, 0.0, 0.0, n2 * n0 / h2, n2 * n1 / h2, -1.0],
-        [0.0, 0.0, 0.0, 0.0, -n1 / hs, n0 / hs, 0.0]])
     # Plane: built off the drawing by an offset, turned about the vertical through the patch, out of plumb.
     lever_along = (-g1 * float(lever_ground[0]) + g0 * float(lever_ground[1])) / gh
-    G_pl = np.array([[-1.0, lever_along, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     tol = max(float(tolerance), 0.0)
-    plane_std = np.array([tol, tol / max(wall_length, 1.0), tol / max(height, 1.0)])
+    # Every small array of the measurement in one buffer (one numpy call, not six).
+    buf = np.array([
+        d_robot, math.atan2(n1, n0), math.asin(max(-1.0, min(1.0, n2))),  # y
+        g0, g1, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0,  # H
+        d_ground, math.atan2(g1, g0), math.asin(max(-1.0, min(1.0, g2))),  # h0
+        d_camera, n0, n1, n2, n1 * t2 - n2 * t1, n2 * t0 - n0 * t2, n0 * t1 - n1 * t0,  # G_cam
+        0.0, 0.0, 0.0, 0.0, n2 * n0 / h2, n2 * n1 / h2, -1.0,
+        0.0, 0.0, 0.0, 0.0, -n1 / hs, n0 / hs, 0.0,
+        -1.0, lever_along, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0,  # G_pl
+        tol, tol / max(wall_length, 1.0), tol / max(height, 1.0)], float)  # plane_std
+    y, H, h0 = buf[0:3], buf[3:12].reshape(3, 3), buf[12:15]
+    G_cam, G_pl, plane_std = buf[15:36].reshape(3, 7), buf[36:45].reshape(3, 3), buf[45:48]
     return Observation(plane_id, camera, y, H, h0, R_own, R_weight, G_cam, G_pl, plane_std)
 
 
@@ -157,13 +164,21 @@ class Solution:
     A: Optional[np.ndarray] = None  # (3, 3m) gain over every observation's rows (0 outside the members): dx = A r
     k_obs: int = 0
     V_weak: Optional[np.ndarray] = None  # (3, w) observed directions known no better than unobservable_std
+    # Where the compiled kernels solved it, whose eigenvectors' signs are their own: the information
+    # matrix and the (ascending) eigenvector indices of V_unobs then V_weak, to report numpy's.
+    eig_source: Optional[Tuple[np.ndarray, Tuple[int, ...]]] = field(default=None, repr=False, compare=False)
 
     @property
     def fully_observed(self) -> bool:
         return self.V_unobs.shape[1] == 0 and (self.V_weak is None or self.V_weak.shape[1] == 0)
 
     def unobservable_directions(self) -> List[np.ndarray]:
-        """Unit directions in (x, y, phi) that the members do not observe, or only weakly."""
+        """Unit directions in (x, y, phi) that the members do not observe, or only weakly (the
+        eigenvectors numpy's eigh gives, signs included, whichever backend solved it)."""
+        if self.eig_source is not None:
+            info, cols = self.eig_source
+            W = np.linalg.eigh(info)[1]
+            return [W[:, j].copy() for j in cols]
         cols = [self.V_unobs] + ([] if self.V_weak is None else [self.V_weak])
         return [V[:, j].copy() for V in cols for j in range(V.shape[1])]
 
@@ -199,24 +214,69 @@ class Integrity:
     separation_heading: float = 0.0  # rad
 
 
+_NO_COLUMNS = np.zeros((3, 0))
+_NO_COLUMNS.setflags(write=False)
+_COLUMNS: Dict[bytes, Tuple[object, object, object, int, Tuple[int, ...]]] = {}
+
+
+def _columns(observed: bytes, weak: bytes) -> Tuple[object, object, object, int, Tuple[int, ...]]:
+    """For 3-column masks of observed and weak eigenvectors: how to take the observed, the other
+    and the weak columns (... : all, None: none, a slice where they are contiguous: a view, else
+    an index), the observed count, and the indices of the others then the weak ones."""
+    key = observed + weak
+    cols = _COLUMNS.get(key)
+    if cols is None:
+        def index(idx: List[int]) -> object:
+            if not idx:
+                return None
+            if idx == list(range(idx[0], idx[-1] + 1)):
+                return slice(idx[0], idx[-1] + 1)
+            return np.array(idx, np.intp)
+        on = [i for i in range(3) if observed[i]]
+        off = [i for i in range(3) if not observed[i]]
+        wk = [i for i in range(3) if weak[i]]
+        cols = _COLUMNS[key] = (... if len(on) == 3 else index(on), index(off), index(wk), len(on), tuple(off + wk))
+    return cols
+
+
 class Stack:
     """Observations of one localization with their joint covariance."""
 
     def __init__(self, obs: Sequence[Observation], model: ErrorModel):
         self.obs = list(obs)
         m = len(self.obs)
-        self.y = np.concatenate([o.y for o in self.obs]) if m else np.zeros(0)
-        self.H = np.vstack([o.H for o in self.obs]) if m else np.zeros((0, 3))
-        self.h0 = np.concatenate([o.h0 for o in self.obs]) if m else np.zeros(0)
+        n = 3 * m
         cams = sorted({o.camera for o in self.obs})
         planes = sorted({o.plane_id for o in self.obs})
         cam_col = {c: CAMERA_PARAMS * i for i, c in enumerate(cams)}
         plane_col = {p: CAMERA_PARAMS * len(cams) + PLANE_PARAMS * i for i, p in enumerate(planes)}
         n_par = CAMERA_PARAMS * len(cams) + PLANE_PARAMS * len(planes)
-        G = np.zeros((3 * m, n_par))
-        sig = np.zeros(n_par)
         cam_std = np.array([model.depth_scale_std] + [model.mount_position_std] * 3 + [model.mount_angle_std] * 3)
-        R = np.zeros((3 * m, 3 * m))
+        self._eye: Optional[np.ndarray] = None  # the numpy solve's identity for rows outside a subset
+        self._residual_at: Tuple[bytes, np.ndarray] = (b"", np.zeros(0))
+        if not m:
+            self.y, self.H, self.h0 = np.zeros(0), np.zeros((0, 3)), np.zeros(0)
+            self.H_blocks, self.W_own = np.zeros((0, 3, 3)), np.zeros((0, 3, 3))
+            self.G_sys, self.R_sys, self.R = np.zeros((0, n_par)), np.zeros((0, 0)), np.zeros((0, 0))
+            self._HtW = np.zeros((3, 0))
+            return
+        if integrity_kernels.compiled():
+            # Each observation's arrays in three stacks (the numpy calls, not the arithmetic, cost here).
+            (self.y, self.h0, self.H_blocks, self.H, self.G_sys, self.R_sys, self.R, self.W_own,
+             self._HtW) = integrity_kernels.stack(
+                np.array([(o.H, o.R_own, o.R_weight, o.G_plane) for o in self.obs], float),
+                np.array([(o.y, o.h0, o.plane_std) for o in self.obs], float),
+                np.array([o.G_camera for o in self.obs], float),
+                np.array([(cam_col[o.camera], plane_col[o.plane_id]) for o in self.obs], np.intp), n_par, cam_std,
+                float(_FLOOR3[0, 0]), _DIAGONAL_FLOOR)
+            return
+        self.y = np.concatenate([o.y for o in self.obs])
+        self.H_blocks = np.array([o.H for o in self.obs])
+        self.H = self.H_blocks.reshape(n, 3)
+        self.h0 = np.concatenate([o.h0 for o in self.obs])
+        G = np.zeros((n, n_par))
+        sig = np.zeros(n_par)
+        R = np.zeros((n, n))
         for i, o in enumerate(self.obs):
             r = slice(3 * i, 3 * i + 3)
             R[r, r] = o.R_own
@@ -225,13 +285,13 @@ class Stack:
             G[r, p:p + PLANE_PARAMS] = o.G_plane
             sig[c:c + CAMERA_PARAMS] = cam_std
             sig[p:p + PLANE_PARAMS] = np.maximum(sig[p:p + PLANE_PARAMS], o.plane_std)
-        self.H_blocks = np.array([o.H for o in self.obs]) if m else np.zeros((0, 3, 3))
-        self.W_own = np.linalg.inv(np.array([o.R_weight for o in self.obs]) + _FLOOR3) if m else np.zeros((0, 3, 3))
+        self.W_own = np.linalg.inv(np.array([o.R_weight for o in self.obs]) + _FLOOR3)
         self.G_sys = G * sig
         self.R_sys = self.G_sys @ self.G_sys.T
         self.R = R + self.R_sys
-        # Floors keep R positive definite when a plane's rows are (nearly) exact.
-        self.R[np.diag_indices_from(self.R)] += 1e-14
+        self.R.flat[::n + 1] += _DIAGONAL_FLOOR
+        # Each plane's weighted sensitivity H_i^T W_i side by side (3, 3m), for every solve.
+        self._HtW = (self.H_blocks.transpose(0, 2, 1) @ self.W_own).transpose(1, 0, 2).reshape(3, n)
 
     def __len__(self) -> int:
         return len(self.obs)
@@ -244,6 +304,15 @@ class Stack:
         psi = rows % 3 == 1
         r[psi] = np.remainder(r[psi] + math.pi, 2 * math.pi) - math.pi
         return r
+
+    def _residual_all(self, x: np.ndarray) -> np.ndarray:
+        """Every row's residual at ``x`` (the checks solve every subset at the same coarse pose)."""
+        key = x.tobytes()
+        if self._residual_at[0] != key:
+            r = self.y - (self.H @ x + self.h0)
+            r[1::3] = np.remainder(r[1::3] + math.pi, 2 * math.pi) - math.pi
+            self._residual_at = (key, r)
+        return self._residual_at[1]
 
     def solve(self, members: Sequence[int], x_lin: np.ndarray, unobservable_std: float,
               prior_cov: Optional[np.ndarray] = None) -> Solution:
@@ -270,46 +339,68 @@ class Stack:
         B, m = len(subsets), len(self.obs)
         if B == 0:
             return []
+        flat = bytearray(B * m)
+        for b, sub in enumerate(subsets):
+            for j in sub:
+                if not 0 <= j < m:
+                    raise IndexError(f"observation {j} of {m}")
+                flat[b * m + j] = 1
+        member = np.frombuffer(flat, np.bool_).reshape(B, m)
+        prior = None if prior_cov is None else np.asarray(prior_cov, float)
+        compiled = integrity_kernels.compiled()
+        if compiled:
+            info, _, V, obs, weak, _, chi2, A, X, P, _ = integrity_kernels.solve(
+                self.R, self.H, self.y, self.h0, x_lin, self._HtW, member, unobservable_std**2,
+                None if prior is None else np.ascontiguousarray(prior))
+        else:
+            _, V, obs, weak, chi2, A, dx, P = self._solve_subsets(member, self._residual_all(x_lin), unobservable_std,
+                                                                  prior)
+            X = x_lin + dx
+            for b in range(B):
+                X[b, 2] = wrap_angle(X[b, 2])
+        observed, weakly, chi2s = obs.tobytes(), weak.tobytes(), chi2.tolist()
+        out = []
+        for b, (sub, x, Pb, Vb, Ab) in enumerate(zip(subsets, X, P, V, A)):
+            on, off, wk, k, reported = _columns(observed[3 * b:3 * b + 3], weakly[3 * b:3 * b + 3])
+            out.append(Solution(tuple(sub), x, Pb, Vb if on is ... else _NO_COLUMNS if on is None else Vb[:, on],
+                                _NO_COLUMNS if off is None else Vb[:, off], max(chi2s[b], 0.0), 3 * len(sub) - k, Ab, k,
+                                _NO_COLUMNS if wk is None else Vb[:, wk],
+                                (info[b], reported) if compiled and reported else None))
+        return out
+
+    def _solve_subsets(self, member: np.ndarray, r_all: np.ndarray, unobservable_std: float,
+                       prior: Optional[np.ndarray]) -> Tuple[np.ndarray, ...]:
+        """solve_many's algebra on (B, m) membership masks: (lam, V, observed, weak, chi2, A, dx, P),
+        the reference the compiled kernel (integrity_kernels) follows."""
         # Every subset over all rows: a row outside it is decoupled (unit variance, no
         # correlation), has no sensitivity to the pose and no residual, so it counts for nothing.
-        member = np.zeros((B, m), bool)
-        for b, sub in enumerate(subsets):
-            member[b, list(sub)] = True
         on = np.repeat(member, 3, axis=1)  # (B, 3m)
-        both = on[:, :, None] & on[:, None, :]
-        Rm = np.where(both, self.R, 0.0) + np.eye(3 * m) * (~on)[:, None, :]
-        Ri = np.linalg.inv(Rm)
-        H = self.H[None] * on[:, :, None]  # (B, 3m, 3)
-        r = self.residual(x_lin, np.arange(3 * m))[None] * on
+        if self._eye is None:
+            self._eye = np.eye(len(self.R))
+        Ri = np.linalg.inv(np.where(on[:, :, None] & on[:, None, :], self.R, self._eye))
+        H = self.H * on[:, :, None]  # (B, 3m, 3)
+        r = r_all * on
         HtRi = H.transpose(0, 2, 1) @ Ri
         info = HtRi @ H
         lam, V = np.linalg.eigh(0.5 * (info + info.transpose(0, 2, 1)))
+        Vt = V.transpose(0, 2, 1)
         floor = unobservable_std**2
-        if prior_cov is not None:
-            floor = np.maximum(floor, np.einsum("bji,jk,bki->bi", V, np.asarray(prior_cov, float), V))
+        if prior is not None:
+            floor = np.maximum(floor, np.einsum("bji,jk,bki->bi", V, prior, V))
         obs = lam > 1.0 / floor  # (B, 3): estimated
         weak = obs & (lam < 1.0 / unobservable_std**2)
         # Generalised least squares only for the chi-square of the residuals.
-        w = (V.transpose(0, 2, 1) @ (HtRi @ r[:, :, None]))[:, :, 0]
+        w = (Vt @ (HtRi @ r[:, :, None]))[:, :, 0]
         chi2 = np.einsum("bi,bij,bj->b", r, Ri, r) - np.sum(np.where(obs, w * w / np.where(obs, lam, 1.0), 0.0), axis=1)
         # The estimate, restricted to the observed directions (exactly: unobserved rows and
         # columns of the normal matrix in V's basis replaced by the identity, then dropped).
-        HtW = (self.H_blocks[None].transpose(0, 1, 3, 2) @ (self.W_own[None] * member[:, :, None, None]))
-        HtW = HtW.transpose(0, 2, 1, 3).reshape(B, 3, 3 * m)
-        T = V.transpose(0, 2, 1) @ (HtW @ H) @ V
+        HtW = self._HtW * on[:, None, :]  # (B, 3, 3m): 0 outside the subset
         keep = obs[:, :, None] & obs[:, None, :]
-        Ti = np.linalg.inv(np.where(keep, T, 0.0) + _EYE3 * (~obs)[:, None, :]) * keep
-        A = V @ Ti @ V.transpose(0, 2, 1) @ HtW  # gain over all rows (0 outside the subset): dx = A r
+        Ti = np.linalg.inv(np.where(keep, Vt @ (HtW @ H) @ V, _EYE3)) * keep
+        A = V @ Ti @ Vt @ HtW  # gain over all rows (0 outside the subset): dx = A r
         dx = (A @ r[:, :, None])[:, :, 0]
         P = A @ self.R @ A.transpose(0, 2, 1)
-        out = []
-        for b in range(B):
-            x = x_lin + dx[b]
-            x[2] = float(wrap_angle(x[2]))
-            k = int(obs[b].sum())
-            out.append(Solution(tuple(subsets[b]), x, 0.5 * (P[b] + P[b].T), V[b][:, obs[b]], V[b][:, ~obs[b]],
-                                float(max(chi2[b], 0.0)), int(3 * len(subsets[b]) - k), A[b], k, V[b][:, weak[b]]))
-        return out
+        return lam, V, obs, weak, chi2, A, dx, 0.5 * (P + P.transpose(0, 2, 1))
 
 
 @functools.lru_cache(maxsize=256)
@@ -333,29 +424,32 @@ def _separation_statistics(stack: Stack, sol_all: Solution, subs: Sequence[Solut
     B = len(subs)
     if B == 0:
         return np.zeros(0), np.zeros(0, np.intp)
-    D = np.array([sub.A for sub in subs]) - sol_all.A[None]  # (B, 3, 3m)
-    V = np.zeros((B, 3, 3))
-    keep = np.zeros((B, 3), bool)
+    A = np.array([sub.A for sub in subs])  # (B, 3, 3m)
+    V = np.zeros((B, 3, 3))  # each subset's observed directions first
+    k_obs = [sub.k_obs for sub in subs]
     for b, sub in enumerate(subs):
-        V[b][:, :sub.k_obs] = sub.V_obs
-        keep[b, :sub.k_obs] = True
-    T = V.transpose(0, 2, 1) @ D  # (B, 3, n0): the separation in each subset's observed directions
-    C = T @ stack.R @ T.transpose(0, 2, 1)
-    both = keep[:, :, None] & keep[:, None, :]
-    C = np.where(both, C, 0.0)
-    sep = np.array([_separation(sub.x - sol_all.x) for sub in subs])  # (B, 3)
-    u = (V.transpose(0, 2, 1) @ sep[:, :, None])[:, :, 0] * keep
+        V[b, :, :k_obs[b]] = sub.V_obs
+    sep = np.array([sub.x for sub in subs]) - sol_all.x  # (B, 3)
+    for b in range(B):
+        sep[b, 2] = float(wrap_angle(sep[b, 2]))
+    if integrity_kernels.compiled():
+        return integrity_kernels.separation(A, sol_all.A, V, np.array(k_obs, np.intp), sep, stack.R)
+    return _separation_statistics_numpy(stack.R, A, sol_all.A, V, np.array(k_obs), sep)
+
+
+def _separation_statistics_numpy(R: np.ndarray, A: np.ndarray, A_all: np.ndarray, V: np.ndarray, k_obs: np.ndarray,
+                                 sep: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """:func:`_separation_statistics` on stacked arrays, the reference integrity_kernels follows."""
+    keep = np.arange(3) < k_obs[:, None]  # (B, 3)
+    Vt = V.transpose(0, 2, 1)
+    T = Vt @ (A - A_all)  # (B, 3, 3m): the separation in each subset's observed directions
+    C = np.where(keep[:, :, None] & keep[:, None, :], T @ R @ T.transpose(0, 2, 1), 0.0)
+    u = (Vt @ sep[:, :, None])[:, :, 0] * keep
     lam, W = np.linalg.eigh(0.5 * (C + C.transpose(0, 2, 1)))
     ok = lam > 1e-9 * np.maximum(lam.max(axis=1, keepdims=True), 1e-30)
     z = (W.transpose(0, 2, 1) @ u[:, :, None])[:, :, 0]
     q = np.sum(np.where(ok, z * z / np.where(ok, lam, 1.0), 0.0), axis=1)
     return q, ok.sum(axis=1)
-
-
-def _separation(dx: np.ndarray) -> np.ndarray:
-    out = np.asarray(dx, float).copy()
-    out[2] = float(wrap_angle(out[2]))
-    return out
 
 
 class Checker:
@@ -370,6 +464,7 @@ class Checker:
         self.false_alarm = false_alarm
         self.risk = risk
         self._cache: Dict[Tuple[int, ...], Solution] = {}
+        self._faults: Dict[Tuple[int, ...], List[Tuple[int, ...]]] = {}
 
     def solve(self, members: Sequence[int]) -> Solution:
         key = tuple(members)
@@ -382,20 +477,25 @@ class Checker:
         """The single faults the checks consider among ``members``: one observation is wrong (a
         surface taken for the wall it is not), or one map wall is (built off the drawing: every
         observation of it is off together)."""
-        out = [(j,) for j in members]
-        by_plane: Dict[str, List[int]] = {}
-        for j in members:
-            by_plane.setdefault(self.stack.obs[j].plane_id, []).append(j)
-        return out + [tuple(g) for g in by_plane.values() if len(g) > 1]
+        key = tuple(members)
+        out = self._faults.get(key)
+        if out is None:
+            by_plane: Dict[str, List[int]] = {}
+            for j in key:
+                by_plane.setdefault(self.stack.obs[j].plane_id, []).append(j)
+            out = self._faults[key] = [(j,) for j in key] + [tuple(g) for g in by_plane.values() if len(g) > 1]
+        return list(out)
 
     def without(self, members: Sequence[int], faults: Sequence[Tuple[int, ...]]) -> List[Solution]:
         """The solution without each fault's observations (solved together with the members' own, cached)."""
-        keys = [tuple(i for i in members if i not in f) for f in faults]
-        missing = list(dict.fromkeys(k for k in [tuple(members)] + keys if k not in self._cache))
+        members = tuple(members)
+        keys = [tuple([i for i in members if i not in f]) for f in faults]
+        cache = self._cache
+        missing = list(dict.fromkeys([k for k in [members] + keys if k not in cache]))
         if missing:
             for k, sol in zip(missing, self.stack.solve_many(missing, self.coarse, self.unobservable_std, self.coarse_cov)):
-                self._cache[k] = sol
-        return [self._cache[k] for k in keys]
+                cache[k] = sol
+        return [cache[k] for k in keys]
 
     def agree_as_a_whole(self, sol: Solution) -> bool:
         """The residual chi-square test alone."""
@@ -466,16 +566,40 @@ class Checker:
         largest separations (horizontal, heading) of those hypotheses."""
         k2 = math.sqrt(-2.0 * math.log(self.risk))  # P(|e| > k sqrt(lambda_max)) <= exp(-k^2 / 2) in 2-D
         k1 = normal_quantile(self.risk / 2.0)
-        subs = self.without(members, self.faults(members))
-        sep = np.array([np.zeros(3)] + [_separation(sol.x - sub.x) for sub in subs])
-        C = np.array([sol.covariance(self.coarse_cov, 0.0)] + [sub.covariance(self.coarse_cov, 0.0) for sub in subs])
-        # Largest eigenvalue of each 2x2 position block, in closed form.
-        a, b, c = C[:, 0, 0], 0.5 * (C[:, 0, 1] + C[:, 1, 0]), C[:, 1, 1]
-        lam = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)
-        hpl = np.hypot(sep[:, 0], sep[:, 1]) + k2 * np.sqrt(np.maximum(lam, 0.0))
-        vpl = np.abs(sep[:, 2]) + k1 * np.sqrt(np.maximum(C[:, 2, 2], 0.0))
-        return (float(hpl.max()), float(vpl.max()), float(np.hypot(sep[:, 0], sep[:, 1]).max()),
-                float(np.abs(sep[:, 2]).max()))
+        hyps = [sol] + self.without(members, self.faults(members))
+        # A handful of hypotheses: plain floats, each operation as numpy's elementwise one.
+        sep = (sol.x - np.array([h.x for h in hyps])).tolist()
+        for s in sep[1:]:
+            s[2] = wrap_angle(s[2])
+        sep_h = np.hypot([s[0] for s in sep], [s[1] for s in sep]).tolist()
+        hpl, vpl = [], []
+        for h, s, sh in zip(hyps, sep, sep_h):
+            (c00, c01, _), (c10, c11, _), (_, _, c22) = _prior_covariance(h, self.coarse_cov)
+            a, b, c = c00, 0.5 * (c01 + c10), c11
+            # Largest eigenvalue of the 2x2 position block, in closed form.
+            lam = 0.5 * (a + c) + math.sqrt(0.25 * ((a - c) * (a - c)) + b * b)
+            hpl.append(sh + k2 * math.sqrt(max(lam, 0.0)))
+            vpl.append(abs(s[2]) + k1 * math.sqrt(max(c22, 0.0)))
+        return _largest(hpl), _largest(vpl), _largest(sep_h), _largest([abs(s[2]) for s in sep])
+
+
+def _prior_covariance(sol: Solution, coarse_cov: np.ndarray) -> List[List[float]]:
+    """``sol.covariance(coarse_cov, 0.0)`` as nested lists."""
+    C = sol.P_obs.tolist()
+    for j in range(sol.V_unobs.shape[1]):
+        v = sol.V_unobs[:, j]
+        prior = max(0.0, float(v @ coarse_cov @ v))
+        vs = v.tolist()
+        for r in range(3):
+            for c in range(3):
+                C[r][c] += vs[r] * vs[c] * prior
+    return C
+
+
+def _largest(values: List[float]) -> float:
+    """max as numpy's: NaN if any is NaN."""
+    top = max(values)
+    return math.nan if any(v != v for v in values) else float(top)
 
 
 def protection_multipliers(risk: float) -> Tuple[float, float]:
