@@ -360,6 +360,16 @@ def test_snapshot_archives_are_bounded(tmp_path):
     wide = tmp_path / "wide.npz"
     np.savez_compressed(wide, depth=np.zeros((16, 4000), np.uint16), depth_scale=0.001, K=K, camera="front")
     assert "larger than a camera's 1920x1080" in refusal(load_snapshot, wide, kind=InputError)
+    # Found by the long fuzz run: a member whose central-directory entry "needs" zip version 6.4,
+    # which Python's zipfile does not implement (it raised NotImplementedError).
+    future = tmp_path / "future.npz"
+    np.savez_compressed(future, depth=np.zeros((16, 16), np.uint16), depth_scale=0.001, K=K, camera="front")
+    data = bytearray(future.read_bytes())
+    at = data.index(b"PK\x01\x02")  # the first central-directory entry; extract version at +6
+    data[at + 6:at + 8] = (64).to_bytes(2, "little")
+    future.write_bytes(bytes(data))
+    assert "not a readable .npz snapshot (NotImplementedError: zip file version 6.4" in refusal(
+        load_snapshot, future, kind=InputError)
 
 
 # ------------------------------------------------------------------ recordings and IFC models

@@ -38,8 +38,9 @@ def _check_members(p: Path, f) -> None:
     try:
         with zipfile.ZipFile(f) as zf:
             infos = zf.infolist()
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, OSError, EOFError) as e:
-        raise InputError(f"{p}: not a readable .npz snapshot ({str(e)[:100]})") from None
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, OSError, EOFError, NotImplementedError,
+            RuntimeError, struct.error) as e:  # NotImplementedError: a member "needs" zip version 6.4 (the long fuzz run)
+        raise InputError(f"{p}: not a readable .npz snapshot ({type(e).__name__}: {str(e)[:100]})") from None
     if len(infos) > 2 * len(_FIELDS):
         raise InputError(f"{p}: {len(infos)} arrays, a snapshot has at most {len(_FIELDS)}")
     for info in infos:
