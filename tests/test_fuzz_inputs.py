@@ -52,7 +52,7 @@ PATH_YAML = ROOT / "config" / "paths" / "paper_4_3.yaml"
 
 LONG = os.environ.get("ROBOT_FUZZ_LONG") == "1"
 LOADER_EXAMPLES = int(os.environ.get("ROBOT_FUZZ_EXAMPLES", 10_000 if LONG else 40))
-CLI_EXAMPLES = 300 if LONG else 12
+CLI_EXAMPLES = int(os.environ.get("ROBOT_FUZZ_CLI_EXAMPLES", 300 if LONG else 12))
 HANG_GUARD = 120.0  # s per example: only there to turn a hang into a failure
 MESSAGE_LIMIT = 600  # characters of one error line
 
