@@ -462,3 +462,36 @@ def test_robot_side_modules_do_not_load_ifcopenshell_or_matplotlib():
             "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+@needs_ifc
+def test_a_library_warning_before_a_refusal_stays_on_the_error_line(room_ifc, monkeypatch, capsys):
+    """Found by the long fuzz run: numpy's RuntimeWarning from ifcopenshell's placement code on a
+    damaged file came out as two raw lines on stderr before the error. robotctl routes Python
+    warnings through its log, held like the others for a batch command: one line in all."""
+    import logging
+    import warnings
+
+    from robot.cli.main import main
+    from robot.maps import ifc_import
+
+    def warn_then_refuse(path):
+        warnings.warn("invalid value encountered in divide", RuntimeWarning, stacklevel=1)
+        raise ConfigError(f"{path}: the IFC model is inconsistent, cannot import it")
+
+    monkeypatch.setattr(ifc_import, "open_model", warn_then_refuse)
+    root = logging.getLogger()
+    saved = root.handlers[:], root.level
+    root.handlers = []  # robotctl's own handler, as in a real run (pytest's capture sets others)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            assert main(["map", "import-ifc", str(room_ifc)]) == 2
+    finally:
+        root.handlers, _ = saved
+        root.setLevel(saved[1])
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("robotctl map: error: ") and "the IFC model is inconsistent" in err
+    assert "(after 1 warning: RuntimeWarning: invalid value encountered in divide" in err
+    assert warnings.formatwarning.__name__ != "_one_line_warning"  # put back for whoever runs next

@@ -11,6 +11,7 @@ import argparse
 import logging
 import os
 import sys
+import warnings
 from typing import List, Optional
 
 # The controller's matrices are tiny: a multi-threaded BLAS only adds thread wake-ups and steals
@@ -70,10 +71,20 @@ class _HeldWarnings(logging.Filter):
         return f" (after {n} warning{'s' if n > 1 else ''}: {self.records[0].getMessage()[:160]})"
 
 
+def _one_line_warning(message, category, filename, lineno, line=None) -> str:
+    return f"{category.__name__}: {message} ({os.path.basename(filename)}:{lineno})"
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(verbose=args.verbose)  # under systemd: syslog priorities, for `journalctl -p`
+    # A library's Python warning (numpy's "invalid value encountered" on a hostile file, found by
+    # the long fuzz run) goes through logging as one line, held like the other warnings of a
+    # batch command, not two raw lines on stderr before the error.
+    saved_format = warnings.formatwarning
+    warnings.formatwarning = _one_line_warning  # type: ignore[assignment]
+    logging.captureWarnings(True)
     held = _HeldWarnings() if args.command in BATCH_COMMANDS and not args.verbose else None
     failed = False
     try:
@@ -91,6 +102,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     finally:
         if held is not None:
             held.release(show=not failed)
+        logging.captureWarnings(False)
+        warnings.formatwarning = saved_format  # type: ignore[assignment]
     return int(rc or 0)
 
 
