@@ -211,3 +211,35 @@ def test_the_app_takes_the_frames_of_all_streaming_cameras_as_one_set():
     assert asyncio.run(scenario(CameraState.STREAMING.value, True)) == {front, left}
     assert asyncio.run(scenario(CameraState.STALLED.value, False)) == {front}  # not waited for
     assert asyncio.run(scenario(CameraState.STREAMING.value, False)) == {front}  # waited, then alone
+
+
+def test_waiting_for_the_other_cameras_frame_gives_way_to_shutdown():
+    """Cancelled at the moment a frame arrives, the wait for the rest of a set ends cancelled (an
+    asyncio.wait_for there swallowed the cancellation on Python 3.8, and the app's shutdown then
+    waited for ever on a localization task that had gone on)."""
+    import asyncio
+
+    from drivers.camera.base import CameraState
+    from robot.app.controller import RobotApp
+    from robot.base.samples import DepthFrame
+    from robot.maps.plane_map import load_plane_map
+
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    front, left = (c.name for c in ROBOT.cameras)
+
+    async def scenario() -> bool:
+        app._loop = asyncio.get_running_loop()
+        app._new_frame = asyncio.Event()
+        app._slots = {front: DepthFrame(front, np.zeros((4, 4), np.uint16), 0.001, np.eye(3)), left: None}
+        app.camera_states = {front: CameraState.STREAMING.value, left: CameraState.STREAMING.value}
+        task = asyncio.ensure_future(app._rest_of_set())
+        await asyncio.sleep(0)  # it waits now
+        app._new_frame.set()  # a frame arrives ...
+        task.cancel()  # ... as the app shuts down
+        try:
+            await asyncio.wait_for(task, 5.0)  # the guard only
+        except asyncio.CancelledError:
+            return True
+        return False
+
+    assert asyncio.run(scenario()), "the cancellation was swallowed"

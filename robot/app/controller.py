@@ -204,14 +204,16 @@ class RobotApp:
             self._loop.add_signal_handler(signal.SIGUSR2, self.resume)
         tasks: List[asyncio.Task] = []
         try:
+            # Before the link is up: compiling holds the interpreter for seconds, which the link's
+            # watchdog would take for a dead board.
+            if self.localizer is not None and not await self._warm_up_kernels():
+                return 1
             sd_notify.status("starting: connecting to the motor board")
             if not await self._connect_chassis():
                 return 0 if self._stop.is_set() else 1  # stopped while waiting is a normal end
             self.recorder.set_depth_budget(self.robot.recording.depth_max_mbit_s)
             self.live_view.set_depth_budget(self.robot.recording.live_depth_max_mbit_s)
             self._write_config_record()
-            if self.localizer is not None and not await self._warm_up_kernels():
-                return 1
             self._init_pose()
             for cam in self.cameras:
                 self._slots[cam.name] = None
@@ -488,11 +490,15 @@ class RobotApp:
             left = deadline - time.monotonic()
             if not missing or left <= 0:
                 return
+            # A timer sets the event at the deadline; no asyncio.wait_for, which on Python 3.8 can
+            # swallow the task's cancellation when the event is set at the same moment (the
+            # shutdown then waited for ever on a task that had gone on to the next set).
             self._new_frame.clear()
+            timer = asyncio.get_running_loop().call_later(left, self._new_frame.set)
             try:
-                await asyncio.wait_for(self._new_frame.wait(), left)
-            except asyncio.TimeoutError:
-                return
+                await self._new_frame.wait()
+            finally:
+                timer.cancel()
 
     def _process_frames(self, frames: Sequence[DepthFrame], coarse: Sequence[Optional[Tuple]], localize: bool) -> list:
         """On the worker: each frame's obstacle scan, then (``localize``) its localization, or the
