@@ -1195,7 +1195,7 @@ def report_localizer(r: Dict[str, Any], m_here: Dict[str, float]) -> List[str]:
         lines.append("")
     k = r.get("kernels", {})
     if k.get("backend") == "numba":
-        lines.append(f"Compiled kernels: numba {k['numba']} ({k['note']}); compiling them into an empty cache took "
+        lines.append(f"Compiled kernels: {k['note']}; compiling them into an empty cache took "
                      f"{k['compile_s']:.1f} s for the plane fit's, {_f(k.get('integrity_compile_s'), '{:.1f}')} s for the "
                      f"integrity checks' and {_f(k.get('scan_compile_s'), '{:.1f}')} s for the obstacle scan's (a first "
                      "start), loading all from the cache in a fresh process "
