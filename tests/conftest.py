@@ -31,3 +31,15 @@ def pytest_collection_modifyitems(config, items):
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return ROOT
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compiled_kernels():
+    """Compile (or load) the numba kernels once, before any test: on a fresh clone the first
+    compile takes seconds, and it belongs to no test (the app does the same at start-up)."""
+    from robot.control import scan_kernels
+    from robot.localization import fit_kernels, integrity_kernels
+
+    for kernels in (fit_kernels, integrity_kernels, scan_kernels):
+        kernels.warm_up()
+    yield

@@ -47,15 +47,30 @@ def test_ready_status_and_watchdog_stop_when_the_control_loop_stalls(tmp_path, m
     try:
         with sim_rig(ROBOT, ARENA, (0.5, 0.6, 0.0), RealtimeSimSettings(fps=5), AppOptions(install_signal_handlers=False,
                      status_period=0.3, stop_when_done=False), plan=plan) as rig:
-            def stall():
+            def pings_after(t):
+                return [tp for tp, m in list(got) if m == "WATCHDOG=1" and tp > t]
+
+            async def script():
+                # By the app's state, not by the clock: start-up may take seconds (the first start
+                # compiles the kernels), so the stall comes after READY and five healthy pings.
+                guard = time.monotonic() + 120.0
+                while time.monotonic() < guard:
+                    ready = [t for t, m in list(got) if "READY=1" in m]
+                    if ready and len(pings_after(ready[0])) >= 5:
+                        break
+                    await asyncio.sleep(0.05)
                 marks["stall"] = time.monotonic()
                 rig.app.stall_control_loop(1.5)
+                while time.monotonic() < guard and not pings_after(marks["stall"] + 1.6):
+                    await asyncio.sleep(0.05)
+                rig.app.request_stop("test done")
 
             async def main():
-                loop = asyncio.get_running_loop()
-                loop.call_later(2.0, stall)
-                loop.call_later(5.0, rig.app.request_stop, "test done")
-                return await rig.app.run()
+                task = asyncio.ensure_future(script())
+                try:
+                    return await rig.app.run()
+                finally:
+                    task.cancel()
 
             assert asyncio.run(main()) == 0
     finally:
