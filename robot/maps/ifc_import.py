@@ -10,6 +10,7 @@ schema or storey) raise ConfigError with one line naming the problem.
 
 from __future__ import annotations
 
+import faulthandler
 import hashlib
 import logging
 import math
@@ -152,6 +153,7 @@ def _parse_in_child(ifcopenshell, p: Path) -> str:
         warnings.simplefilter("ignore", DeprecationWarning)
         pid = os.fork()
     if pid == 0:  # the child: parse, report by exit status only
+        faulthandler.disable()  # a crash here is reported by the parent, in one line, not as a stack dump
         code = 0
         try:
             ifcopenshell.open(str(p))
