@@ -101,8 +101,8 @@ def batch_section(seeds: Sequence[int]) -> List[str]:
     lines += ["", f"Not observed (never written): {', '.join(sorted(held)) or 'none'}. Observed parameters per seed: "
               f"{', '.join(map(str, written))}. Errors in units of their reported std over all observed parameters "
               f"and seeds: RMS {float(np.sqrt(np.mean(z ** 2))):.2f}, largest {float(np.max(np.abs(z))):.1f} "
-              "(an honest std gives RMS 1; the simulated camera's fixed disparity pattern is modelled only to "
-              "second order)."]
+              "(an honest std gives RMS 1; the simulated camera's fixed disparity pattern is modelled to "
+              "third order, and the wave's part beyond it is the same in every seed)."]
     return lines
 
 
@@ -160,9 +160,7 @@ def online_section(runs: int, workers: int) -> List[str]:
     if nees:
         lines.append(f"- NEES of the observed states at the end: mean {np.mean(nees):.1f} over {np.mean(dims):.0f} "
                      "states (an honest covariance gives the number of states: larger means the online estimate "
-                     "claims more than it knows; the walls as built are states kept across windows, but the "
-                     "simulated camera's fixed disparity pattern beyond second order repeats from window to window "
-                     "and still makes the mount pitch overconfident)")
+                     "claims more than it knows)")
     lines += ["", "Wall time per case: " + ", ".join(f"{n} {w:.0f} s" for n, w in wall.items()) + "."]
     return lines
 

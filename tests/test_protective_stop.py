@@ -16,6 +16,7 @@ from robot.config.safety import SafetyConfig
 from robot.control import protective_stop as ps
 from robot.control import scan_kernels
 from robot.control.protective_stop import BLIND, CLEAR, SLOWDOWN, STOP, ProtectiveStop, braking_speed, free_distance
+from robot.localization import fit_kernels
 from robot.maps.plane_map import load_plane_map
 
 ROBOT = load_robot_config("config/robot.yaml")
@@ -335,14 +336,14 @@ def _plain_one_per_cell(mem, mem_t, memory_cell):
 @pytest.fixture(params=["numpy", "numba"])
 def scan_backend(request, monkeypatch):
     """Each test once with the scan's numpy code and once with its compiled kernels (when numba
-    is installed); the backend is put back afterwards."""
-    scan_kernels.backend()
-    for name in ("_backend", "_note", "_requested", "_warm"):
-        monkeypatch.setattr(scan_kernels, name, getattr(scan_kernels, name))
+    is installed): the plane fit's backend decides both, and is put back afterwards."""
+    fit_kernels.backend()
+    for name in ("_backend", "_note", "_requested"):
+        monkeypatch.setattr(fit_kernels, name, getattr(fit_kernels, name))
     if request.param == "numba":
         pytest.importorskip("numba", reason="the compiled kernels need numba (pip install -e '.[perf]')")
-    assert scan_kernels.set_backend(request.param) == request.param
-    scan_kernels.warm_up()
+    assert fit_kernels.set_backend(request.param) == request.param
+    assert scan_kernels.backend() == request.param, scan_kernels.backend_note()
     return request.param
 
 
@@ -565,19 +566,30 @@ def test_the_depth_validity_bounds_compare_as_numpy_does(scan_backend):
 
 
 def test_the_scan_backend_follows_robot_kernels(monkeypatch):
-    for name in ("_backend", "_note", "_requested", "_warm"):
-        monkeypatch.setattr(scan_kernels, name, getattr(scan_kernels, name))
-    monkeypatch.setenv("ROBOT_KERNELS", "numpy")
-    assert scan_kernels.set_backend(None) == "numpy" and scan_kernels.warm_up() == 0.0
-    monkeypatch.setenv("ROBOT_KERNELS", "fast")
-    with pytest.raises(RuntimeError):
-        scan_kernels.set_backend(None)
-    monkeypatch.setitem(__import__("sys").modules, "numba", None)  # numba missing
+    """One switch for every kernel: the scan runs compiled exactly when the plane fit does, and
+    kernels that do not compile fall back to numpy under "auto" with the reason, or raise under "numba"."""
+    for name in ("_backend", "_note", "_requested"):
+        monkeypatch.setattr(fit_kernels, name, getattr(fit_kernels, name))
     monkeypatch.setattr(scan_kernels, "_nb", {})
+    monkeypatch.setattr(scan_kernels, "_failed", "")
+    monkeypatch.setenv("ROBOT_KERNELS", "numpy")
+    assert fit_kernels.set_backend(None) == "numpy"
+    assert scan_kernels.backend() == "numpy" and scan_kernels.warm_up() == 0.0
+    assert "plane fit's backend is numpy" in scan_kernels.backend_note()
+    pytest.importorskip("numba", reason="the compiled kernels need numba (pip install -e '.[perf]')")
+
+    def broken():
+        raise TypeError("cannot compile this")
+
+    monkeypatch.setattr(scan_kernels, "_run_each_kernel", broken)
     monkeypatch.setenv("ROBOT_KERNELS", "auto")
-    assert scan_kernels.set_backend(None) == "numpy" and "does not import" in scan_kernels.backend_note()
-    with pytest.raises(RuntimeError):
-        scan_kernels.set_backend("numba")
+    assert fit_kernels.set_backend(None) == "numba"
+    assert scan_kernels.backend() == "numpy" and "did not compile" in scan_kernels.backend_note()
+    assert not scan_kernels._nb  # no half-loaded kernels are left to call
+    monkeypatch.setattr(scan_kernels, "_failed", "")
+    monkeypatch.setenv("ROBOT_KERNELS", "numba")
+    with pytest.raises(TypeError):
+        scan_kernels.warm_up()
 
 
 def test_the_scan_with_every_kernel_declining_is_the_plain_scan(scan_backend, monkeypatch):

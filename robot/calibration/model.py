@@ -36,12 +36,14 @@ from robot.base.geometry import R_BODY_OPTICAL, rpy_to_matrix, wrap_angle
 from robot.config import RobotConfig
 
 CAMERA_PARAMS = ("depth_scale", "x", "y", "z", "roll", "pitch", "yaw")
-# The camera's smooth disparity error over its image, up to second order (px): e0 + eu u + ev v +
-# euv u v + euu u^2 + evv v^2, u and v from the image centre in half-widths and half-heights. A
+# The camera's smooth disparity error over its image, up to third order (px): e0 + eu u + ev v +
+# euv u v + euu u^2 + evv v^2 + the four cubic terms, u and v from the image centre in half-widths
+# and half-heights. A
 # D435i has some (its stereo calibration); it biases depth like a scale error that depends on
 # where the wall is in the image, so it is estimated beside the scale, with the localizer's
 # systematic disparity error as its prior, and never written: a nuisance.
-DISPARITY_PARAMS = ("disparity_0", "disparity_u", "disparity_v", "disparity_uv", "disparity_uu", "disparity_vv")
+DISPARITY_PARAMS = ("disparity_0", "disparity_u", "disparity_v", "disparity_uv", "disparity_uu", "disparity_vv",
+                    "disparity_uuu", "disparity_uuv", "disparity_uvv", "disparity_vvv")
 CAMERA_BLOCK = CAMERA_PARAMS + DISPARITY_PARAMS
 # A map wall as built (docs/calibration.md, "Walls as built"): its offset along its normal (m, the
 # change of the plane's d), a turn about the vertical and an out-of-plumb tilt about the wall's
@@ -55,16 +57,20 @@ ODOMETRY_PARAMS = ("wheel_radius", "wheel_diff_crab", "wheel_diff_turn", "wheel_
 WHEEL_DIFFS = np.array([[-1.0, -1.0, 1.0], [1.0, 1.0, 1.0], [1.0, -1.0, -1.0], [-1.0, 1.0, -1.0]])
 ANGLE_PARAMS = ("roll", "pitch", "yaw")
 D435_BASELINE = 0.050  # m, the stereo baseline behind the systematic depth error
-CONSIDER_TERMS = 6  # terms of the disparity error field (DISPARITY_PARAMS)
+CONSIDER_TERMS = len(DISPARITY_PARAMS)  # terms of the disparity error field, up to third order
 # Prior std of each term in units of the field's RMS (``LocalizerConfig.depth_systematic_px``): the
 # offset is the field's RMS; a smooth field of about one cycle per image width changes by about
-# 2.5 times its RMS over a half-width, so the slopes and second-order terms get that. Tighter, the
-# walls' tilt from a slope is taken for a mount pitch.
-DISPARITY_PRIOR_FACTORS = (1.0, 2.5, 2.5, 2.5, 2.5, 2.5)
+# 2.5 times its RMS over a half-width, so the slopes and the higher-order terms get that. Tighter,
+# the walls' tilt from a slope is taken for a mount pitch. The third-order terms are there because
+# a field of up to 1.5 cycles per image width (the D435's, docs/simulator.md) still has a local
+# slope that second order cannot follow, and that slope is the same in every view from the same
+# place in the image: left out, it does not average away and the mount pitch learnt online became
+# several of its own standard deviations wrong.
+DISPARITY_PRIOR_FACTORS = (1.0, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5, 2.5)
 
 
 def disparity_prior_std(systematic_px: float) -> np.ndarray:
-    """(6,) prior standard deviations (px) of the disparity terms for a field of ``systematic_px`` RMS."""
+    """(CONSIDER_TERMS,) prior standard deviations (px) of the disparity terms for a field of ``systematic_px`` RMS."""
     return np.maximum(np.asarray(DISPARITY_PRIOR_FACTORS) * float(systematic_px), 1e-6)
 
 
@@ -251,10 +257,27 @@ def integrate_wheels(steps: np.ndarray, segment: np.ndarray, n_segments: int, od
     return out
 
 
+def field_terms(u0: np.ndarray, v0: np.ndarray) -> np.ndarray:
+    """(N, 3, CONSIDER_TERMS): the disparity field's terms (``DISPARITY_PARAMS``) as the affine field
+    they look like near image points (u0, v0) (half-widths and half-heights from the centre): its
+    slope along u, its slope along v and its value extrapolated to the optical axis, per unit term."""
+    u0, v0 = np.asarray(u0, float), np.asarray(v0, float)
+    # Each term f(u, v) with its gradient (f_u, f_v); the axis value is f - u0 f_u - v0 f_v.
+    one, zero = np.ones_like(u0), np.zeros_like(u0)
+    f = [one, u0, v0, u0 * v0, u0 ** 2, v0 ** 2, u0 ** 3, u0 ** 2 * v0, u0 * v0 ** 2, v0 ** 3]
+    f_u = [zero, one, zero, v0, 2 * u0, zero, 3 * u0 ** 2, 2 * u0 * v0, v0 ** 2, zero]
+    f_v = [zero, zero, one, u0, zero, 2 * v0, zero, u0 ** 2, 2 * u0 * v0, 3 * v0 ** 2]
+    T = np.empty((len(u0), 3, CONSIDER_TERMS))
+    T[:, 0, :] = np.stack(f_u, axis=-1)
+    T[:, 1, :] = np.stack(f_v, axis=-1)
+    T[:, 2, :] = np.stack(f, axis=-1) - u0[:, None] * T[:, 0, :] - v0[:, None] * T[:, 1, :]
+    return T
+
+
 def disparity_effect(n_C: np.ndarray, d: float, center: Sequence[float],
                      intrinsics: Tuple[float, float, float, float]) -> Tuple[np.ndarray, np.ndarray]:
     """What the camera's disparity error terms (``DISPARITY_PARAMS``, px) do to a wall it fits:
-    (6,) to its offset and (3, 6) to its normal, to first order (d' = d + dd . e, n' = n + dn e).
+    (CONSIDER_TERMS,) to its offset and (3, CONSIDER_TERMS) to its normal, to first order (d' = d + dd . e, n' = n + dn e).
 
     Near the wall's points (u0, v0) the error field is affine; an affine disparity error e adds
     e / (f_x b) to the plane's inverse depth q = -n / d along each ray (x/z, y/z, 1), so
@@ -262,10 +285,7 @@ def disparity_effect(n_C: np.ndarray, d: float, center: Sequence[float],
     n' = n - d (I - n n^T) dq."""
     fx, fy, w, h = intrinsics
     u0, v0 = center
-    T = np.zeros((3, CONSIDER_TERMS))  # (slope_u, slope_v, offset) by the field's terms
-    T[0, 1], T[0, 3], T[0, 4] = 1.0, v0, 2 * u0
-    T[1, 2], T[1, 3], T[1, 5] = 1.0, u0, 2 * v0
-    T[2, 0], T[2, 3], T[2, 4], T[2, 5] = 1.0, -u0 * v0, -u0 * u0, -v0 * v0
+    T = field_terms(np.array([u0], float), np.array([v0], float))[0]
     dq = np.diag([fx / (w / 2.0), fy / (h / 2.0), 1.0]) @ T / (fx * D435_BASELINE)
     n = np.asarray(n_C, float)
     return d * d * (n @ dq), -d * (np.eye(3) - np.outer(n, n)) @ dq
@@ -283,7 +303,7 @@ class PlaneArrays:
     applied: np.ndarray
     basis: np.ndarray  # (N, 2, 3): heading and tilt directions orthogonal to the measured normal
     sigma: np.ndarray  # (N, 3)
-    # (N, 3, 6): d residual / d (DISPARITY_PARAMS) of the camera's disparity error, seen by each
+    # (N, 3, CONSIDER_TERMS): d residual / d (DISPARITY_PARAMS) of the camera's disparity error, seen by each
     # wall as its local offset and slopes where its points are
     consider: np.ndarray
     wall: Optional[np.ndarray] = None  # (N,) index into ``ParamLayout.walls`` of the observed wall, -1: none
@@ -316,10 +336,7 @@ class PlaneArrays:
         consider = np.zeros((n, 3, CONSIDER_TERMS))
         uv = np.array([o.center for o in obs], float).reshape(n, 2)
         u0, v0 = uv[:, 0], uv[:, 1]
-        T = np.zeros((n, 3, CONSIDER_TERMS))  # (slope_u, slope_v, offset) by the field's terms
-        T[:, 0, 1], T[:, 0, 3], T[:, 0, 4] = 1.0, v0, 2 * u0
-        T[:, 1, 2], T[:, 1, 3], T[:, 1, 5] = 1.0, u0, 2 * v0
-        T[:, 2, 0], T[:, 2, 3], T[:, 2, 4], T[:, 2, 5] = 1.0, -u0 * v0, -u0 * u0, -v0 * v0
+        T = field_terms(u0, v0)
         for ci, c in enumerate(layout.cameras):
             if c not in data.intrinsics:
                 continue

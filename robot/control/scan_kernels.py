@@ -24,109 +24,84 @@ rounding is what it always was.
 The kernels release the GIL (``nogil``): the scan runs on the localization worker beside the
 event loop.
 
-Backend: the environment variable ``ROBOT_KERNELS``, as for the plane fit's kernels
-(:mod:`robot.localization.fit_kernels`), read at the first :func:`backend` call: ``auto`` (the
-default: numba if it imports, else numpy), ``numba`` (a RuntimeError if numba is missing) or
-``numpy``. numba is imported only then, never by importing this module. Compiled code is cached
-on disk (``cache=True``) where ``NUMBA_CACHE_DIR`` says. :func:`warm_up` compiles the kernels
-(3 to 4 s on the development machine with numba 0.68; expect 5 to 8 times that on the Nano) or
-loads them from the cache (0.2 s), and the protective stop calls it when it is built, so that no
-frame pays for it.
+Backend: the plane fit's (:func:`robot.localization.fit_kernels.backend`, environment variable
+``ROBOT_KERNELS``), so one switch decides every kernel: the scan's kernels run when that backend
+is numba and they compiled. If they do not compile, ``auto`` falls back to numpy
+(:func:`backend_note` says why) and ``numba`` raises. numba is imported only then, never by
+importing this module. Compiled code is cached on disk (``cache=True``) where
+``NUMBA_CACHE_DIR`` says. :func:`warm_up` compiles the kernels (3 to 4 s on the development
+machine with numba 0.68; expect 5 to 8 times that on the Nano) or loads them from the cache
+(0.2 s); the app calls it at start-up, so that no frame pays for it.
 """
 
 from __future__ import annotations
 
 import os
+import threading
 import time
 from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-ENV = "ROBOT_KERNELS"
-BACKENDS = ("auto", "numba", "numpy")
+from robot.localization import fit_kernels
 
-_backend: Optional[str] = None  # "numba" or "numpy" once resolved
-_requested = "auto"  # what was asked for: only "auto" falls back to numpy when compiling fails
-_note = ""  # how the backend was chosen
-_nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher (compiled at its first call)
-_warm = False  # warm_up ran (or the backend is numpy)
-
-
-def backend() -> str:
-    """The backend in use, "numba" or "numpy" (resolved from ``ROBOT_KERNELS`` on first use)."""
-    if _backend is None:
-        set_backend(None)
-    return _backend  # type: ignore[return-value]
-
-
-def backend_note() -> str:
-    """One line on how the backend was chosen (why numpy, when numba was not available)."""
-    backend()
-    return _note
-
-
-def set_backend(name: Optional[str]) -> str:
-    """Choose the backend: "auto", "numba" or "numpy" (None: from ``ROBOT_KERNELS``, default auto).
-    Returns the one in use. Raises RuntimeError for an unknown name, or for "numba" without numba."""
-    global _backend, _note, _requested, _warm
-    source = "argument"
-    if name is None:
-        name, source = os.environ.get(ENV, "auto").strip().lower() or "auto", ENV
-    if name not in BACKENDS:
-        raise RuntimeError(f"{source} {name!r}: the scan's kernel backend must be one of {', '.join(BACKENDS)}")
-    _warm = False
-    if name == "numpy":
-        _backend, _note, _requested = "numpy", f"numpy ({source} says numpy)", name
-        return _backend
-    try:
-        _load()
-    except ImportError as e:
-        why = (str(e).splitlines() or [type(e).__name__])[0]
-        if name == "numba":
-            raise RuntimeError(f"{source} asks for the scan's numba kernels, but numba does not import ({why}): "
-                               "install the perf extra (pip install -e '.[perf]') or set ROBOT_KERNELS=numpy") from None
-        _backend, _note, _requested = "numpy", f"numpy (numba does not import: {why})", name
-        return _backend
-    _backend, _requested, _note = "numba", name, f"numba {_nb['version']}"
-    return _backend
-
-
+_nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher, once they compiled
+_failed = ""  # why the kernels did not compile ("": they did, or were not tried)
+_lock = threading.Lock()  # one compilation, whichever thread scans first
 _KERNELS = ("_sample_kernel", "_band_kernel", "_ground_kernel", "_close_kernel", "_inside_kernel", "_kept_kernel",
             "_seen_through_kernel", "_merge_kernel")
 
 
-def _load() -> None:
-    """Import numba and wrap the kernels; they compile (or load from the cache) at their first call."""
-    import numba  # (each time: a test may hide it)
+def backend() -> str:
+    """"numba" when the plane fit's backend is numba and the scan's kernels compiled, else "numpy"."""
+    if fit_kernels.backend() != "numba":
+        return "numpy"
+    if not _nb and not _failed:
+        warm_up()
+    return "numba" if _nb else "numpy"
 
-    if _nb:
-        return
-    g = globals()
-    for name in _KERNELS:
-        try:
-            _nb[name] = numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(g[name])
-        except RuntimeError:  # no writable cache location: compile at every start rather than fail
-            _nb[name] = numba.njit(cache=False, nogil=True, fastmath=False, error_model="numpy")(g[name])
-    _nb["version"] = numba.__version__
+
+def backend_note() -> str:
+    """One line on whether the scan's kernels run, and why not."""
+    if backend() == "numba":
+        return f"numba {_nb.get('version', '')}"
+    return f"numpy ({_failed})" if _failed else f"numpy (the plane fit's backend is numpy: {fit_kernels.backend_note()})"
 
 
 def warm_up() -> float:
     """Compile the kernels, or load them from numba's cache, on tiny inputs of the types the scan
-    passes (raw uint16 and float32 metres). Returns the seconds it took (0 with the numpy backend,
-    or when already done). If compiling fails, "auto" falls back to numpy (:func:`backend_note`
-    says why) and "numba" raises."""
-    global _backend, _note, _warm
-    if backend() != "numba" or _warm:
+    passes (raw uint16 and float32 metres). Returns the seconds it took (0 with the numpy backend).
+    If compiling fails, "auto" falls back to numpy and "numba" (ROBOT_KERNELS) raises."""
+    global _failed
+    if fit_kernels.backend() != "numba":
         return 0.0
     t0 = time.perf_counter()
-    try:
-        _run_each_kernel()
-    except Exception as e:
-        if _requested == "numba":
-            raise
-        _backend, _note = "numpy", f"numpy (the numba kernels did not compile: {type(e).__name__}: {e})".split("\n")[0]
-    _warm = True
+    with _lock:
+        if _nb or _failed:
+            return time.perf_counter() - t0
+        try:
+            _nb.update(_load())
+            _run_each_kernel()
+        except Exception as e:
+            _nb.clear()
+            _failed = f"the scan's numba kernels did not compile: {type(e).__name__}: {e}".split("\n")[0]
+            if os.environ.get(fit_kernels.ENV, "auto").strip().lower() == "numba":
+                raise
     return time.perf_counter() - t0
+
+
+def _load() -> Dict[str, Any]:
+    """numba's dispatchers of the kernels (they compile, or load from the cache, at their first call)."""
+    import numba
+
+    g = globals()
+    out: Dict[str, Any] = {"version": numba.__version__}
+    for name in _KERNELS:
+        try:
+            out[name] = numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(g[name])
+        except RuntimeError:  # no writable cache location: compile at every start rather than fail
+            out[name] = numba.njit(cache=False, nogil=True, fastmath=False, error_model="numpy")(g[name])
+    return out
 
 
 def _run_each_kernel() -> None:
