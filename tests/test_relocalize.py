@@ -151,3 +151,30 @@ def test_a_twin_that_wins_on_clutter_but_sees_through_walls_is_not_unique(house)
                    for h in res.hypotheses), (seed, res.reason)
         by_free_space += "sees through" in res.reason
     assert by_free_space >= 1  # the scores alone would have made a wrong unique
+
+
+def test_the_wall_finder_ignores_the_ceiling_and_orients_a_far_wall():
+    """Seen over the top of the walls, the ceiling's points end in an arc at the range limit, and a
+    line along that arc passed for a far wall 7 to 15 deg off every wall of duplex_level1 (even in
+    exact depth), so the one wall across the room matched nothing. Its direction comes with a
+    standard deviation that the pair matching widens its tolerance by."""
+    from robot.localization.relocalize import extract_walls
+
+    duplex = load_plane_map("config/maps/duplex_level1.yaml")
+    pose = (4.575, -6.207, 1.346)  # w000, the y-normal wall, is 5.8 m ahead; the rest are x-normal
+    cam = ROBOT.camera("front")
+    scene = SimScene(duplex)
+    found = 0
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        frame = render_depth_frame(ROBOT, scene, "front", pose, rng=rng, noise=DepthNoise())
+        walls = extract_walls(frame, cam, np.random.default_rng(seed), min_range=0.2, max_range=6.0)
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        angles = [math.degrees(math.atan2(s * w.n_r[0] + c * w.n_r[1], c * w.n_r[0] - s * w.n_r[1])) for w in walls]
+        # Every wall found is a wall of the map's two directions (within 3 deg), and the far one is among them.
+        assert all(min(abs(math.remainder(a - m, 360.0)) for m in (0.0, 90.0, 180.0, -90.0)) < 3.0 for a in angles), angles
+        far = [w for w, a in zip(walls, angles) if abs(math.remainder(a + 90.0, 360.0)) < 3.0]
+        assert all(0.0 < w.angle_std < math.radians(3.0) for w in far)
+        found += bool(far)
+    # About 100 points at 5.8 m, near the 2 % a wall needs: not in every draw (seeds 1 and 2 miss it).
+    assert found >= 1
