@@ -895,7 +895,7 @@ def _controller_window(fps: float, seconds: float, alloc_seconds: float,
             while app.stats.localizations < 10 and loop.time() < guard and not task.done():
                 await asyncio.sleep(0.05)
             if task.done():
-                r["error"] = f"the controller stopped before localizing ({getattr(app, 'exit_reason', None) or 'no reason given'})"
+                r["error"] = f"the controller stopped before localizing ({app.exit_reason or 'no reason given'})"
                 return
             if app.stats.localizations < 10:
                 r["error"] = f"no localizations within {START_GUARD_S:.0f} s of start"

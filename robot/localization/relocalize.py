@@ -332,6 +332,13 @@ def _span_fits(ends_r: np.ndarray, phi: np.ndarray, t: np.ndarray, mw: _MapWalls
     return ok
 
 
+def _offset_through_middle(w: ObservedWall, n_g: np.ndarray, c: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """``d_r`` of wall ``w`` if its normal were the map's ``n_g`` (K, 2) turned into the robot frame
+    at heading (cos, sin) = (c, s), the line passing through the middle of its points."""
+    m = (w.span[0] + w.span[1]) / 2
+    return -((c * n_g[:, 0] + s * n_g[:, 1]) * m[0] + (-s * n_g[:, 0] + c * n_g[:, 1]) * m[1])
+
+
 def _hypotheses(walls: List[ObservedWall], mw: _MapWalls, pairs: _MapPairs, region
                 ) -> List[Tuple[float, float, float, Tuple[int, int]]]:
     """Poses implied by matching each non-parallel pair of observed walls to map wall pairs."""
@@ -366,10 +373,7 @@ def _hypotheses(walls: List[ObservedWall], mw: _MapWalls, pairs: _MapPairs, regi
             # heading (where the points are, the poorly oriented wall's line is still right).
             na, nb = mw.n[ka], mw.n[kb]
             c, s = np.cos(phi), np.sin(phi)
-            mi, mj = (wi.span[0] + wi.span[1]) / 2, (wj.span[0] + wj.span[1]) / 2
-            d_ri = -((c * na[:, 0] + s * na[:, 1]) * mi[0] + (-s * na[:, 0] + c * na[:, 1]) * mi[1])
-            d_rj = -((c * nb[:, 0] + s * nb[:, 1]) * mj[0] + (-s * nb[:, 0] + c * nb[:, 1]) * mj[1])
-            r1, r2 = d_ri - mw.d[ka], d_rj - mw.d[kb]
+            r1, r2 = _offset_through_middle(wi, na, c, s) - mw.d[ka], _offset_through_middle(wj, nb, c, s) - mw.d[kb]
             det = na[:, 0] * nb[:, 1] - na[:, 1] * nb[:, 0]
             good = np.abs(det) > 1e-6
             with np.errstate(divide="ignore", invalid="ignore"):
