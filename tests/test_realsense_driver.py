@@ -455,15 +455,6 @@ def _increasing(xs) -> bool:
     return all(b > a for a, b in zip(xs, xs[1:]))
 
 
-def _sessions(numbers):
-    """Split frame numbers where they restart (a reopened stream); each part must increase."""
-    cut = [i for i in range(1, len(numbers)) if numbers[i] <= numbers[i - 1]]
-    assert len(cut) == 1, f"expected exactly one restart in {numbers}"
-    parts = (numbers[:cut[0]], numbers[cut[0]:])
-    assert all(_increasing(p) for p in parts)
-    return parts
-
-
 def _wait_for(pred, timeout=10.0):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -483,9 +474,12 @@ def test_stalled_stream_is_reported_and_recovers(robot, rt_path):
                           PlaybackFile(rt_path, real_time=True))
     cam.on_state_change = lambda name, s: states.append(s)
 
+    paused = []
+
     def on_frame(f):
         frames.append(f)
-        if f.frame_number == 4:
+        if f.frame_number >= 4 and not paused:  # ">=": real-time playback may skip any one frame
+            paused.append(f.frame_number)
             cam.device.as_playback().pause()
 
     cam.start(on_frame)
@@ -497,9 +491,11 @@ def test_stalled_stream_is_reported_and_recovers(robot, rt_path):
     finally:
         cam.stop()
     numbers = [f.frame_number for f in frames]
-    assert numbers[0] == 0 and numbers[-1] == N_FRAMES - 1 and _increasing(numbers)
-    # Real-time playback, like a camera, may drop a frame on a loaded machine: counted, not lost.
-    assert len(frames) + cam.stats["drops"] == N_FRAMES
+    assert numbers[-1] == N_FRAMES - 1 and _increasing(numbers)
+    # Real-time playback, like a camera, may drop a frame on a loaded machine: counted, not lost
+    # (all but those before the first frame, which no driver can know of: a loaded machine may
+    # skip frame 0 before the first wait returns).
+    assert numbers[0] + len(frames) + cam.stats["drops"] == N_FRAMES
     i = states.index(CameraState.STALLED)
     assert CameraState.STREAMING in states[i:]
     assert cam.stats["reconnects"] == 0
@@ -513,8 +509,9 @@ def test_stuck_stream_is_restarted_by_itself(robot, rt_path):
     behind it, depend on the machine's speed."""
     frames: List[DepthFrame] = []
     restart_at: List[int] = []  # how many frames had been delivered when the stream was restarted
+    source = OpenCountingPlayback(rt_path, real_time=True)
     cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100, stalls_before_reset=2),
-                          PlaybackFile(rt_path, real_time=True))
+                          source)
     seen: List[CameraState] = []
 
     def on_state(name, state):
@@ -543,7 +540,11 @@ def test_stuck_stream_is_restarted_by_itself(robot, rt_path):
     for part in (first, second):  # within a session: every frame once, in order
         assert _increasing([f.frame_number for f in part])
     assert second and second[-1].frame_number == N_FRAMES - 1  # restarted, and played to the end
-    assert second[0].frame_number < paused[0]  # the recording started again from its beginning
+    # The recording started again from its beginning: the restart opened the file in a new
+    # pipeline, not the paused one resumed. (Not judged by the second session's first frame
+    # number: on a busy machine real-time playback may have skipped past the pause's frame
+    # before the driver's first wait returns, as CI's loaded 3.8 pass once saw.)
+    assert source.opens == 2, source.opens
     t = [f.t_capture for f in frames]
     assert all(b > a for a, b in zip(t, t[1:]))  # monotonic across the restart (device clock restarted)
 
@@ -583,6 +584,19 @@ def test_a_frameset_handed_over_twice_is_delivered_once(robot, sim_run):
     assert all(b.t_capture > a.t_capture for a, b in zip(frames, frames[1:]))
 
 
+class OpenCountingPlayback(PlaybackFile):
+    """A recording that counts how often the driver opens it: each open is a new pipeline on
+    the file, which plays from the recording's beginning."""
+
+    def __init__(self, path, real_time: bool = False):
+        super().__init__(path, real_time=real_time)
+        self.opens = 0
+
+    def configure(self, rs, cfg) -> None:
+        super().configure(rs, cfg)
+        self.opens += 1
+
+
 class ResettablePlayback(PlaybackFile):
     """A recording posing as a camera that can be hardware-reset. librealsense has no way to
     reset a playback device, so this records the call: the one fake, at the driver's source seam."""
@@ -609,7 +623,7 @@ def test_stuck_camera_gets_a_hardware_reset_then_is_reopened(robot, rt_path):
     done = []
 
     def on_frame(f):
-        if f.frame_number == 2 and not done:
+        if f.frame_number >= 2 and not done:  # ">=": real-time playback may skip any one frame
             done.append(True)
             cam.device.as_playback().pause()
 
@@ -633,14 +647,16 @@ def test_vanished_device_is_reported_gone_and_recovered_when_it_returns(robot, r
     away = tmp_path / "unplugged.bag"
     shutil.copy(rt_path, path)
     frames: List[DepthFrame] = []
+    source = OpenCountingPlayback(path, real_time=True)
     cam = RealSenseCamera(with_rs(robot.camera("front"), frame_timeout_ms=100, stalls_before_reset=1000),
-                          PlaybackFile(path, real_time=True))
+                          source)
     gone = []
+    back_at: List[int] = []  # how many frames had been delivered when the device came back
 
     def on_frame(f):
         frames.append(f)
-        if f.frame_number == 3 and not gone:
-            gone.append(True)
+        if f.frame_number >= 3 and not gone:  # ">=": real-time playback may skip any one frame
+            gone.append(f.frame_number)
             # An open file keeps playing on Linux, so the frames are stopped too (pause) and the
             # device "unplugged" (moved).
             cam.device.as_playback().pause()
@@ -652,13 +668,18 @@ def test_vanished_device_is_reported_gone_and_recovered_when_it_returns(robot, r
         assert "was removed" in cam.last_error or "not present" in cam.last_error
         time.sleep(0.5)  # several reconnect attempts fail meanwhile
         assert cam.state is CameraState.GONE and cam.stats["reconnects"] == 0
+        back_at.append(len(frames))
         away.rename(path)
         assert cam.wait_ended(30)
     finally:
         cam.stop()
     assert cam.stats["reconnects"] == 1
-    first, second = _sessions([f.frame_number for f in frames])
-    assert first[-1] < N_FRAMES // 2 and second[0] == 0 and second[-1] == N_FRAMES - 1
+    first = [f.frame_number for f in frames[:back_at[0]]]
+    second = [f.frame_number for f in frames[back_at[0]:]]
+    assert gone[0] in first and _increasing(first) and _increasing(second)
+    # Reopened as a new pipeline on the file (which plays from its beginning) and played to the
+    # end. Which frame a busy machine's real-time playback hands over first is not judged.
+    assert source.opens == 2 and second and second[-1] == N_FRAMES - 1
 
 
 class WatchedPlayback(PlaybackFile):
