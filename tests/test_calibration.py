@@ -346,6 +346,80 @@ ONE_WALL = wall_map([("north", (-1.0, 1.5), (2.0, 1.5), (0.0, -1.0))])
 CORRIDOR = wall_map([("south", (-3.0, -0.6), (3.0, -0.6), (0.0, 1.0)), ("north", (-3.0, 0.6), (3.0, 0.6), (0.0, -1.0))])
 
 
+def arena_with(tolerance: float, moved: Sequence[Tuple[str, float]] = ()):
+    """The paper's arena (as wall_map builds it) with its walls' as-built tolerance, each wall in
+    ``moved`` built that far (m) outwards from the drawing."""
+    out = {"south": -1.0, "east": 1.0, "north": 1.0, "west": -1.0}
+    walls = [("south", (-0.25, -0.25), (1.25, -0.25), (0.0, 1.0)), ("east", (1.25, -0.25), (1.25, 1.25), (-1.0, 0.0)),
+             ("north", (-0.25, 1.25), (1.25, 1.25), (0.0, -1.0)), ("west", (-0.25, -0.25), (-0.25, 1.25), (1.0, 0.0))]
+    shift = dict(moved)
+    built = []
+    for pid, a, b, n in walls:
+        k = shift.get(pid, 0.0) * out[pid]
+        axis = 0 if n[0] else 1
+        a, b = list(a), list(b)
+        a[axis] += k
+        b[axis] += k
+        built.append((pid, tuple(a), tuple(b), n))
+    m = wall_map(built)
+    return replace(m, planes=[replace(p, tolerance=tolerance) for p in m.planes])
+
+
+def as_drawn_in(data, drawn):
+    """The data as a robot would collect it in a room built off its drawing: the fits are of the
+    built walls, the planes they are matched to the drawn ones."""
+    planes = {p.id: p for p in drawn.planes}
+    for kf in data.keyframes:
+        kf.observations = [replace(o, n_ground=planes[o.plane_id].normal.copy(), d_ground=float(planes[o.plane_id].d))
+                           for o in kf.observations]
+    return data
+
+
+def test_walls_built_off_the_drawing_are_not_taken_for_a_depth_scale():
+    """The room was built 8 mm wider than drawn. Taken as drawn, the walls' error becomes a depth
+    scale error many of its standard deviations wide; with the map's tolerance (10 mm) each wall's
+    offset, turn and lean are solved beside the calibration, the scale is honestly not observed,
+    and nothing observed is off by more than its uncertainty allows."""
+    truth = truth_vector(**INJECTED)
+    built = arena_with(0.01, moved=[("east", 0.008), ("north", 0.008)])
+    sink = _CollectorSink()
+    SyntheticWorld(truth, built).feed((0.5, 0.5, 0.0), calibration_drive(), sink)
+    drawn = arena_with(0.01)
+    data = as_drawn_in(sink.collector.dataset(), drawn)
+    as_drawn = calibrate(data)  # the walls taken as exactly where the drawing has them
+    z = [abs(err(as_drawn, truth, f"{c}.depth_scale")) / as_drawn.report(f"{c}.depth_scale").std for c in ("front", "left")]
+    assert max(z) > 5.0  # the hazard: confidently wrong
+    res = calibrate(data, plane_map=drawn)
+    for cam in ("front", "left"):
+        assert not res.report(f"{cam}.depth_scale").observable
+    for r in res.reports:
+        if r.observable:
+            assert abs(r.value - truth[LAYOUT.index(r.name)]) < 4.0 * r.std + 1e-9, r.name
+    for cam in ("front", "left"):  # a camera's tilt is seen on every wall, each wall's lean is its own
+        assert res.report(f"{cam}.roll").observable and res.report(f"{cam}.pitch").observable
+    cal, _ = to_calibration(res, ROBOT)
+    assert all(c.depth_scale is None for c in cal.cameras.values())
+    # the walls are nuisances: solved, never reported or written
+    assert not any(r.name.startswith("plane:") for r in res.reports)
+
+
+def test_a_surveyed_room_calibrates_the_depth_scale_with_its_walls_as_built():
+    """The same room with its walls measured to 0.5 mm (and built where measured): the walls are
+    still solved for, within that tolerance, and the scale is observed and meets its target."""
+    truth = truth_vector(**INJECTED)
+    surveyed = arena_with(0.0005)
+    sink = _CollectorSink()
+    SyntheticWorld(truth, surveyed).feed((0.5, 0.5, 0.0), calibration_drive(), sink)
+    res = calibrate(sink.collector.dataset(), plane_map=surveyed)
+    assert len(res.solution.layout.walls) == 4
+    for cam in ("front", "left"):
+        r = res.report(f"{cam}.depth_scale")
+        assert r.observable and abs(err(res, truth, f"{cam}.depth_scale")) < 5e-4
+    for r in res.reports:
+        if r.observable:
+            assert abs(r.value - truth[LAYOUT.index(r.name)]) < 4.0 * r.std + 1e-9, r.name
+
+
 def test_one_wall_cannot_separate_a_depth_scale_from_a_position():
     truth = truth_vector(**INJECTED)
     _, res = batch(truth, ONE_WALL, start=(0.5, 0.6, 0.0))

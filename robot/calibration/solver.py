@@ -35,7 +35,9 @@ from robot.calibration.model import (
     disparity_prior_std,
     odometry_residuals,
     plane_residuals,
+    with_walls_as_built,
 )
+from robot.maps.plane_map import PlaneMap
 
 # What a calibration file holds (robot.config.calibration); the wheels' differences are estimated
 # so that they do not bias the rest, but have no place in it.
@@ -561,12 +563,25 @@ def _fmt(name: str, v: float) -> str:
 
 
 def calibrate(data: Dataset, free: Optional[Sequence[str]] = None, bounds: Optional[np.ndarray] = None,
-              options: Optional[SolveOptions] = None) -> CalibrationResult:
+              options: Optional[SolveOptions] = None, plane_map: Optional[PlaneMap] = None) -> CalibrationResult:
     """Solve every parameter (``free``: a subset; the disparity terms always), then judge each one's
     observability from the result. The reports give for each parameter its estimate and standard
-    deviation, and whether the data observed it; only observed ones may be written."""
-    layout = ParamLayout(data.cameras)
+    deviation, and whether the data observed it; only observed ones may be written.
+
+    ``plane_map``: the map the data was taken in. Each wall it holds then has its as-built
+    deviation solved beside the calibration, with the plane's tolerance as its prior
+    (``with_walls_as_built``), so what the walls' builders left open is not claimed as known.
+    Without it the walls are taken as exactly where the data says they are (synthetic data)."""
     options = options or SolveOptions()
+    wall_std: Dict[str, np.ndarray] = {}
+    if plane_map is not None:
+        data, wall_std = with_walls_as_built(data, {p.id: p for p in plane_map.planes})
+    layout = ParamLayout(data.cameras, tuple(data.walls))
+    if wall_std and options.prior_info is None:
+        prior = default_prior_std(data.nominal, layout, data.systematic_px)
+        for w, s in wall_std.items():
+            prior[layout.wall_slice(w)] = np.maximum(s, 1e-9)
+        options = SolveOptions(**{**options.__dict__, "prior_info": np.diag(1.0 / prior ** 2)})
     bounds = default_bounds(data.nominal, layout) if bounds is None else np.asarray(bounds, float)
     trying = list(layout.names) if free is None else sorted(set(free) | {layout.names[i] for i in layout.nuisance})
     sol = solve(data, SolveOptions(**{**options.__dict__, "free": trying}), layout)

@@ -187,7 +187,7 @@ def cmd_calibrate(args) -> int:
     data, truth, what = _collect(args, robot, plane_map)
     if not data.keyframes:
         raise InputError(f"{what}: no wall was fitted: nothing to calibrate from")
-    result = calibrate(data)
+    result = calibrate(data, plane_map=plane_map)
     sol = result.solution
     doc: Dict[str, object] = {
         "source": what, "keyframes": sol.counts["keyframes"], "plane_observations": sol.counts["plane_observations"],

@@ -51,6 +51,7 @@ from robot.calibration.model import (
     disparity_prior_std,
     is_nuisance,
     is_wall_param,
+    wall_prior,
 )
 from robot.calibration.solver import SolveOptions, solve
 from robot.config import RobotConfig
@@ -144,17 +145,10 @@ class CalibrationFilter:
         the robot first saw the wall."""
         plane = self._map_planes.get(plane_id)
         if plane is not None:
-            v = np.concatenate([np.asarray(poly, float).reshape(-1, 3) for poly in plane.polygons])
-            pivot = v.mean(axis=0)
-            extent = v.max(axis=0) - v.min(axis=0)
-            length, height = math.hypot(extent[0], extent[1]), float(extent[2])
-            tol = float(plane.tolerance)
-        else:
-            p = np.array([pose[0], pose[1], self.settings.wall_pivot_height])
-            pivot = p - (float(n_G @ p) + float(d_G)) * n_G
-            length = height = 1.0
-            tol = DEFAULT_TOLERANCE
-        return pivot, np.array([tol, tol / max(length, 1.0), tol / max(height, 1.0)])
+            return wall_prior(plane)
+        p = np.array([pose[0], pose[1], self.settings.wall_pivot_height])
+        pivot = p - (float(n_G @ p) + float(d_G)) * n_G
+        return pivot, np.array([DEFAULT_TOLERANCE] * 3)
 
     def _add_walls(self, data, t: float) -> None:
         """States for the walls of this window not yet kept (their prior), and the oldest dropped
