@@ -407,21 +407,38 @@ def _cluster(hyps) -> List[Tuple[float, float, float, int, set]]:
     return out
 
 
-def _wall_agreement(walls: List[ObservedWall], mw: _MapWalls, x: float, y: float, phi: float) -> float:
-    """Points of the observed walls that a map wall explains from this pose (plane and extent)."""
-    c, s = math.cos(phi), math.sin(phi)
-    total = 0.0
+def _wall_agreements(walls: List[ObservedWall], mw: _MapWalls, poses: np.ndarray) -> np.ndarray:
+    """``_wall_agreement`` of every pose (K, 3) at once: a relocalization ranks hundreds of
+    clusters, and one pose at a time that was a fifth of its CPU in numpy calls on small arrays."""
+    poses = np.asarray(poses, float).reshape(-1, 3)
+    total = np.zeros(len(poses))
+    if not len(poses) or not walls:
+        return total
+    x, y, phi = poses[:, 0], poses[:, 1], poses[:, 2]
+    c, s = np.cos(phi), np.sin(phi)
+    cos_tol = math.cos(ANGLE_TOL)
+    tang = np.stack([-mw.n[:, 1], mw.n[:, 0]], axis=1)
+    pa = mw.a_end[:, 0] * tang[:, 0] + mw.a_end[:, 1] * tang[:, 1]
+    pb = mw.b_end[:, 0] * tang[:, 0] + mw.b_end[:, 1] * tang[:, 1]
+    lo, hi = np.minimum(pa, pb) - 0.15, np.maximum(pa, pb) + 0.15
     for w in walls:
-        n_g = np.array([c * w.n_r[0] - s * w.n_r[1], s * w.n_r[0] + c * w.n_r[1]])
-        d_g = w.d_r - float(n_g @ np.array([x, y]))
-        same = (mw.n @ n_g > math.cos(ANGLE_TOL)) & (np.abs(mw.d - d_g) < 0.08)
-        if not same.any():
+        gx = c * w.n_r[0] - s * w.n_r[1]
+        gy = s * w.n_r[0] + c * w.n_r[1]
+        d_g = w.d_r - (gx * x + gy * y)
+        same = ((gx[:, None] * mw.n[None, :, 0] + gy[:, None] * mw.n[None, :, 1]) > cos_tol) \
+            & (np.abs(mw.d[None, :] - d_g[:, None]) < 0.08)
+        ip, k = np.nonzero(same)
+        if not len(ip):
             continue
-        k = np.nonzero(same)[0]
-        ends = np.array(w.span)
-        ok = _span_fits(ends, np.full(len(k), phi), np.tile([x, y], (len(k), 1)), mw, k, 0.15)
-        if ok.any():
-            total += w.points
+        ok = np.ones(len(ip), dtype=bool)
+        for e in w.span:  # both ends of its points on the map wall's extent (as _span_fits)
+            ex = c[ip] * e[0] - s[ip] * e[1] + x[ip]
+            ey = s[ip] * e[0] + c[ip] * e[1] + y[ip]
+            sv = ex * tang[k, 0] + ey * tang[k, 1]
+            ok &= (sv >= lo[k]) & (sv <= hi[k])
+        hit = np.zeros(len(poses), dtype=bool)
+        hit[ip[ok]] = True
+        total[hit] += w.points
     return total
 
 
@@ -571,7 +588,7 @@ class Relocalizer:
         # Merge the hypotheses that agree; rank them by how many of the observed walls (weighted by
         # their points) land on a map wall, and verify the best by predicting the frames.
         clusters = _cluster(hyps)
-        agreement = [_wall_agreement(walls, self.walls, c[0], c[1], c[2]) for c in clusters]
+        agreement = _wall_agreements(walls, self.walls, np.array([c[:3] for c in clusters], float)).tolist()
         order = sorted(range(len(clusters)), key=lambda k: (-agreement[k], -clusters[k][3]))
         clusters = [clusters[k] for k in order[:MAX_VERIFY]]
         scorer = _Scorer(self.robot, self.map, views, self.index, self.max_range)
