@@ -5,25 +5,33 @@ cluster, so the same clusters are verified in the same order."""
 from __future__ import annotations
 
 import math
-from typing import List
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import pytest
 
 from drivers.sim.clutter import random_site_clutter
 from drivers.sim.render import DepthNoise, SimScene, render_depth_frame
+from robot.base.geometry import compose_se2, pose_to_T_ground_robot
 from robot.config import load_robot_config
 from robot.localization.relocalize import (
     ANGLE_TOL,
+    IN_WEIGHT,
+    NOTHING_PREDICTED,
+    PIXEL_CORRELATION,
+    SEE_THROUGH,
     ObservedWall,
     Relocalizer,
     _cluster,
     _hypotheses,
+    _label_edges,
     _MapWalls,
+    _Scorer,
     _span_fits,
     _wall_agreements,
     extract_walls,
 )
+from robot.localization.roi import predict_plane_views, rasterize_views
 from robot.maps.plane_map import load_plane_map
 
 ROBOT = load_robot_config("config/robot.yaml")
@@ -46,6 +54,64 @@ def reference_wall_agreement(walls: List[ObservedWall], mw: _MapWalls, x: float,
         if ok.any():
             total += w.points
     return total
+
+
+class ReferenceScorer(_Scorer):
+    """The verification score as it was before the pixels' planes were looked up in a table."""
+
+    def score(self, pose: Tuple[float, float, float], coarse: bool = False,
+              rels: Optional[Sequence[Tuple[float, float, float]]] = None) -> Tuple[float, float, List[str]]:
+        """The previous code."""
+        total, agree, scored, through = 0.0, 0, 0, 0
+        seen: Dict[str, int] = {}
+        for cam, grid, z, valid, rel, view in self.items:
+            if rels is not None:
+                rel = rels[view]
+            T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
+            cands = self.index.in_view(T_gc, grid.frustum, self.max_range)
+            views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
+            label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
+            cols, rows, _, _ = grid.rays
+            has = (label >= 0) & valid
+            if not has.any():
+                continue
+            r_idx, c_idx = np.nonzero(has)
+            edge = _label_edges(label)[r_idx, c_idx]
+            pis = np.array([views[k].pi_camera for k in label[r_idx, c_idx]])
+            ray = np.stack([cols[c_idx], rows[r_idx], np.ones(len(r_idx))], axis=1)
+            denom = np.einsum("ij,ij->i", pis[:, :3], ray)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z_pred = -pis[:, 3] / denom
+            zm = z[r_idx, c_idx]
+            sigma = 0.01 + 0.005 * zm ** 2  # depth noise plus as-built walls, generous on purpose
+            if coarse:
+                sigma = sigma + 0.03 + 0.02 * zm  # a pair hypothesis: centimetres and a degree off
+            res = (zm - z_pred) / sigma
+            inlier = np.abs(res) < 3.0
+            # Behind a predicted wall's edge is where a depth jump's flying pixels land (between the
+            # edge and what lies beyond it): no evidence that the wall is not there.
+            behind = (res >= 3.0) & ~edge
+            # Log-likelihood ratio against knowing nothing (depth uniform over the range): a pixel
+            # on its predicted wall gains up to ~5 nats, clutter in front costs at most log(0.1),
+            # and a point behind a predicted wall is free-space evidence against the pose.
+            gauss = np.exp(-0.5 * res ** 2) / (sigma * math.sqrt(2.0 * math.pi))
+            ll = np.log(IN_WEIGHT * gauss * self.max_range + (1.0 - IN_WEIGHT))
+            ll = np.where(behind, SEE_THROUGH, ll)
+            total += float(ll.sum())
+            agree += int(np.count_nonzero(inlier))
+            through += int(np.count_nonzero(behind))
+            scored += len(res)
+            for k in np.unique(label[r_idx, c_idx][inlier]):
+                pid = views[int(k)].plane_id
+                seen[pid] = seen.get(pid, 0) + int(np.count_nonzero(label[r_idx, c_idx][inlier] == k))
+            # Valid measurements where the map predicts nothing (beyond the map, through an opening
+            # to the outside, furniture) say nothing either way: the baseline.
+            total += NOTHING_PREDICTED * float(np.count_nonzero(valid & (label < 0)))  # (zero: the baseline)
+        support = agree / scored if scored else 0.0
+        self.last_see_through = through / scored if scored else 0.0
+        planes = [p for p, n in sorted(seen.items(), key=lambda kv: -kv[1]) if n >= 5]
+        return total / PIXEL_CORRELATION, support, planes
+
 
 
 @pytest.fixture(scope="module")
@@ -108,3 +174,26 @@ def test_no_walls_or_no_poses_agree_with_nothing(relocalizers):
     assert _wall_agreements([], mw, np.zeros((3, 3))).tolist() == [0.0, 0.0, 0.0]
     w = ObservedWall("front", np.array([1.0, 0.0]), 0.5, (np.zeros(2), np.ones(2)), 10)
     assert _wall_agreements([w], mw, np.zeros((0, 3))).shape == (0,)
+
+
+@pytest.mark.parametrize("name", MAPS)
+def test_the_verification_score_is_the_previous_code_s(relocalizers, name):
+    """Fine and coarse scores, support, see-through share and supporting walls of the truth and of
+    poses around it, on cluttered rendered views with the realistic camera: identical."""
+    rel = relocalizers[name]
+    rng = np.random.default_rng(11)
+    from drivers.sim.building import free_space_poses
+
+    for pose in free_space_poses(rel.map, 3, rng, z=0.15):
+        pose = tuple(float(v) for v in pose)
+        scene = SimScene(rel.map, clutter=list(random_site_clutter(rel.map, rng, 4, keep_clear=[pose[:2]])))
+        frames = [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=DepthNoise()) for c in ROBOT.cameras]
+        views = [(frames, (0.0, 0.0, 0.0)), (frames, (0.0, 0.0, 0.3))]
+        for stride in (16, 32):
+            new = _Scorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
+            old = ReferenceScorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
+            for d in [(0.0, 0.0, 0.0)] + [tuple(rng.normal(0, (0.2, 0.2, 0.2))) for _ in range(5)]:
+                p = (pose[0] + d[0], pose[1] + d[1], pose[2] + d[2])
+                for coarse in (False, True):
+                    assert new.score(p, coarse=coarse) == old.score(p, coarse=coarse)
+                    assert new.last_see_through == old.last_see_through
