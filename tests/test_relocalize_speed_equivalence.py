@@ -10,6 +10,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 import numpy as np
 import pytest
 
+from drivers.sim.building import free_space_poses
 from drivers.sim.clutter import random_site_clutter
 from drivers.sim.render import DepthNoise, SimScene, render_depth_frame
 from robot.base.geometry import compose_se2, pose_to_T_ground_robot
@@ -123,8 +124,6 @@ def relocalizers():
 def test_every_cluster_of_rendered_cluttered_views_ranks_as_before(relocalizers, name):
     rel = relocalizers[name]
     rng = np.random.default_rng(7)
-    from drivers.sim.building import free_space_poses
-
     checked = 0
     for pose in free_space_poses(rel.map, 6, rng, z=0.15):
         pose = tuple(float(v) for v in pose)
@@ -182,8 +181,6 @@ def test_the_verification_score_is_the_previous_code_s(relocalizers, name):
     poses around it, on cluttered rendered views with the realistic camera: identical."""
     rel = relocalizers[name]
     rng = np.random.default_rng(11)
-    from drivers.sim.building import free_space_poses
-
     for pose in free_space_poses(rel.map, 3, rng, z=0.15):
         pose = tuple(float(v) for v in pose)
         scene = SimScene(rel.map, clutter=list(random_site_clutter(rel.map, rng, 4, keep_clear=[pose[:2]])))
@@ -197,3 +194,25 @@ def test_the_verification_score_is_the_previous_code_s(relocalizers, name):
                 for coarse in (False, True):
                     assert new.score(p, coarse=coarse) == old.score(p, coarse=coarse)
                     assert new.last_see_through == old.last_see_through
+
+
+def test_a_large_map_is_ranked_by_blocks_with_the_same_result(relocalizers, monkeypatch):
+    """Poses go through in blocks (a 20,000-plane map times thousands of clusters would not fit in
+    memory at once): the blocks give what one pass gives."""
+    import robot.localization.relocalize as R
+
+    rel = relocalizers["institute_ground"]
+    rng = np.random.default_rng(5)
+    lo, hi = rel.map.bounds()
+    walls = []
+    for pose in free_space_poses(rel.map, 2, rng, z=0.15):
+        pose = tuple(float(v) for v in pose)
+        for cam in ROBOT.cameras:
+            f = render_depth_frame(ROBOT, SimScene(rel.map), cam.name, pose, rng=rng, noise=DepthNoise())
+            walls += extract_walls(f, cam, rng, min_range=ROBOT.localizer.min_range, max_range=rel.max_range)
+    poses = np.array([c[:3] for c in _cluster(_hypotheses(walls, rel.walls, rel.pairs, (lo[:2], hi[:2])))], float)
+    assert len(poses) > 10
+    whole = _wall_agreements(walls, rel.walls, poses)
+    monkeypatch.setattr(R, "AGREEMENT_BLOCK", 3 * len(rel.walls.n))  # three poses a block
+    assert _wall_agreements(walls, rel.walls, poses).tolist() == whole.tolist()
+    assert whole.tolist() == [reference_wall_agreement(walls, rel.walls, *p) for p in poses]

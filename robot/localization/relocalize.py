@@ -91,6 +91,7 @@ CLUSTER_XY = 0.15  # m: pair solutions scatter by centimetres; the refinement do
 CLUSTER_PHI = math.radians(4.0)
 SCORE_STRIDE = 16  # pixels between scored grid points at 848x480
 COARSE_STRIDE = 32  # the same for the first, coarse verification of every cluster
+AGREEMENT_BLOCK = 1 << 18  # poses x map walls per block when ranking clusters (a few MB per array)
 MAX_VERIFY = 400  # clusters verified by prediction (all of them in a building floor)
 REFINE_SLACK = 10.0  # nats a refined pose may score below its start and still be taken (scoring noise)
 MAX_REFINE = 24  # verified candidates refined by the localizer (those within reach of the best)
@@ -414,6 +415,11 @@ def _wall_agreements(walls: List[ObservedWall], mw: _MapWalls, poses: np.ndarray
     total = np.zeros(len(poses))
     if not len(poses) or not walls:
         return total
+    # Poses by blocks: a (poses x map walls) array for a 20,000-plane map and thousands of
+    # clusters would be gigabytes.
+    block = max(1, AGREEMENT_BLOCK // max(1, len(mw.n)))
+    if len(poses) > block:
+        return np.concatenate([_wall_agreements(walls, mw, poses[i:i + block]) for i in range(0, len(poses), block)])
     x, y, phi = poses[:, 0], poses[:, 1], poses[:, 2]
     c, s = np.cos(phi), np.sin(phi)
     cos_tol = math.cos(ANGLE_TOL)
