@@ -39,6 +39,22 @@ ROBOT = load_robot_config("config/robot.yaml")
 MAPS = ["paper_arena", "fzk_haus_ground", "institute_ground", "duplex_level1"]
 
 
+def reference_span_fits(ends_r: np.ndarray, phi: np.ndarray, t: np.ndarray, mw: _MapWalls, k: np.ndarray,
+                        tol: float) -> np.ndarray:
+    """The previous ``_span_fits``, which derived each map wall's extent on every call."""
+    c, s = np.cos(phi), np.sin(phi)
+    tang = np.stack([-mw.n[k, 1], mw.n[k, 0]], axis=1)
+    lo = np.minimum(np.einsum("ij,ij->i", mw.a_end[k], tang), np.einsum("ij,ij->i", mw.b_end[k], tang))
+    hi = np.maximum(np.einsum("ij,ij->i", mw.a_end[k], tang), np.einsum("ij,ij->i", mw.b_end[k], tang))
+    ok = np.ones(len(k), dtype=bool)
+    for e in ends_r:
+        gx = c * e[0] - s * e[1] + t[:, 0]
+        gy = s * e[0] + c * e[1] + t[:, 1]
+        sv = gx * tang[:, 0] + gy * tang[:, 1]
+        ok &= (sv >= lo - tol) & (sv <= hi + tol)
+    return ok
+
+
 def reference_wall_agreement(walls: List[ObservedWall], mw: _MapWalls, x: float, y: float, phi: float) -> float:
     """The previous code, one pose at a time (relocalize.py before the vectorized ranking)."""
     c, s = math.cos(phi), math.sin(phi)
@@ -51,7 +67,7 @@ def reference_wall_agreement(walls: List[ObservedWall], mw: _MapWalls, x: float,
             continue
         k = np.nonzero(same)[0]
         ends = np.array(w.span)
-        ok = _span_fits(ends, np.full(len(k), phi), np.tile([x, y], (len(k), 1)), mw, k, 0.15)
+        ok = reference_span_fits(ends, np.full(len(k), phi), np.tile([x, y], (len(k), 1)), mw, k, 0.15)
         if ok.any():
             total += w.points
     return total
@@ -216,3 +232,18 @@ def test_a_large_map_is_ranked_by_blocks_with_the_same_result(relocalizers, monk
     monkeypatch.setattr(R, "AGREEMENT_BLOCK", 3 * len(rel.walls.n))  # three poses a block
     assert _wall_agreements(walls, rel.walls, poses).tolist() == whole.tolist()
     assert whole.tolist() == [reference_wall_agreement(walls, rel.walls, *p) for p in poses]
+
+
+def test_the_span_test_of_the_pair_search_is_the_previous_code_s(relocalizers):
+    """Each map wall's extent is derived once per map now; the pair search's span test gives what
+    it gave when it derived them on every call."""
+    rng = np.random.default_rng(9)
+    for name in MAPS:
+        mw = relocalizers[name].walls
+        for _ in range(20):
+            k = rng.integers(0, len(mw.n), 300)
+            ends = rng.uniform(-4, 4, (2, 2))
+            phi = rng.uniform(-math.pi, math.pi, 300)
+            t = mw.centre[k] + rng.normal(0, 1.0, (300, 2))
+            for tol in (0.0, 0.15):
+                assert _span_fits(ends, phi, t, mw, k, tol).tolist() == reference_span_fits(ends, phi, t, mw, k, tol).tolist()

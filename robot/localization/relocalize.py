@@ -262,6 +262,16 @@ class _MapWalls:
     a_end: np.ndarray  # (W, 2) ends of each wall's horizontal span
     b_end: np.ndarray
     centre: np.ndarray  # (W, 2)
+    tang: np.ndarray = None  # (W, 2) unit direction along each wall (the normal turned +90 deg)
+    s_lo: np.ndarray = None  # (W,) the wall's horizontal extent along ``tang``
+    s_hi: np.ndarray = None
+
+    def __post_init__(self) -> None:
+        # Fixed by the map: computed once, not for every hypothesis and cluster tested on it.
+        self.tang = np.stack([-self.n[:, 1], self.n[:, 0]], axis=1)
+        sa = np.einsum("ij,ij->i", self.a_end, self.tang)
+        sb = np.einsum("ij,ij->i", self.b_end, self.tang)
+        self.s_lo, self.s_hi = np.minimum(sa, sb), np.maximum(sa, sb)
 
 
 def _map_walls(plane_map: PlaneMap) -> _MapWalls:
@@ -321,9 +331,7 @@ def _span_fits(ends_r: np.ndarray, phi: np.ndarray, t: np.ndarray, mw: _MapWalls
                tol: float) -> np.ndarray:
     """Whether an observed span (two ends, robot frame) lands on map wall k's extent, per hypothesis."""
     c, s = np.cos(phi), np.sin(phi)
-    tang = np.stack([-mw.n[k, 1], mw.n[k, 0]], axis=1)
-    lo = np.minimum(np.einsum("ij,ij->i", mw.a_end[k], tang), np.einsum("ij,ij->i", mw.b_end[k], tang))
-    hi = np.maximum(np.einsum("ij,ij->i", mw.a_end[k], tang), np.einsum("ij,ij->i", mw.b_end[k], tang))
+    tang, lo, hi = mw.tang[k], mw.s_lo[k], mw.s_hi[k]
     ok = np.ones(len(k), dtype=bool)
     for e in ends_r:
         gx = c * e[0] - s * e[1] + t[:, 0]
@@ -423,10 +431,7 @@ def _wall_agreements(walls: List[ObservedWall], mw: _MapWalls, poses: np.ndarray
     x, y, phi = poses[:, 0], poses[:, 1], poses[:, 2]
     c, s = np.cos(phi), np.sin(phi)
     cos_tol = math.cos(ANGLE_TOL)
-    tang = np.stack([-mw.n[:, 1], mw.n[:, 0]], axis=1)
-    pa = mw.a_end[:, 0] * tang[:, 0] + mw.a_end[:, 1] * tang[:, 1]
-    pb = mw.b_end[:, 0] * tang[:, 0] + mw.b_end[:, 1] * tang[:, 1]
-    lo, hi = np.minimum(pa, pb) - 0.15, np.maximum(pa, pb) + 0.15
+    tang, lo, hi = mw.tang, mw.s_lo - 0.15, mw.s_hi + 0.15
     for w in walls:
         gx = c * w.n_r[0] - s * w.n_r[1]
         gy = s * w.n_r[0] + c * w.n_r[1]
@@ -437,7 +442,7 @@ def _wall_agreements(walls: List[ObservedWall], mw: _MapWalls, poses: np.ndarray
         if not len(ip):
             continue
         ok = np.ones(len(ip), dtype=bool)
-        for e in w.span:  # both ends of its points on the map wall's extent (as _span_fits)
+        for e in w.span:  # both ends of its points on the map wall's extent (_span_fits, per pose)
             ex = c[ip] * e[0] - s[ip] * e[1] + x[ip]
             ey = s[ip] * e[0] + c[ip] * e[1] + y[ip]
             sv = ex * tang[k, 0] + ey * tang[k, 1]
