@@ -482,7 +482,7 @@ def test_the_filter_steps_are_filterpys_ekf_equations():
     reference: x' = x + u, P' = F P F^T + Q; K = P H^T S^-1, Joseph-form P) on random states,
     motions, walls and pose fixes, to rounding."""
     kalman = pytest.importorskip("filterpy.kalman", reason="filterpy (the reference) is not installed")
-    from robot.fusion.ekf import _Fix, _motion
+    from robot.fusion.ekf import _cov6, _cov33, _Fix, _motion
 
     rng = np.random.default_rng(7)
     f = PoseFilter()
@@ -492,7 +492,10 @@ def test_the_filter_steps_are_filterpys_ekf_equations():
         # predict: a motion as the history builds it
         vx, vy, wz, dt = rng.normal(0, 0.3), rng.normal(0, 0.3), rng.normal(0, 0.5), rng.uniform(0.005, 0.2)
         mo = _motion(vx, vy, wz, _random_cov(rng, 0.01).tolist(), dt, 1.0, f.config)
-        xn, Pn = f._predict(x, P, mo)
+        # The history keeps a state as (x, y, phi) and a covariance as its upper triangle.
+        xs, Ps = tuple(x.ravel().tolist()), _cov6(P)
+        xn, Pn = f._predict(xs, Ps, mo)
+        xn, Pn = np.reshape(xn, (3, 1)), _cov33(Pn)
         i0, i1, i2, a, b, e, d, g_, h, var_pos, var_phi = mo
         phi = x.item(2)
         c, s = math.cos(phi), math.sin(phi)
@@ -517,7 +520,8 @@ def test_the_filter_steps_are_filterpys_ekf_equations():
         z1 = wrap_angle(ang - x.item(2) + rng.normal(0, 0.01))
         model = (n0, n1, dg, ang, z0, z1, R[0, 0], R[0, 1], R[1, 0], R[1, 1], "wall")
         f._gate2 = math.inf
-        xu, Pu, res = f._apply_plane(x, P, model)
+        xu, Pu, res = f._apply_plane(xs, Ps, model)
+        xu, Pu = np.reshape(xu, (3, 1)), _cov33(Pu)
         assert res.accepted
         H = np.array([[n0, n1, 0.0], [0.0, 0.0, -1.0]])
 
@@ -539,7 +543,8 @@ def test_the_filter_steps_are_filterpys_ekf_equations():
         target = x.reshape(3) + rng.normal(0, 0.02, 3)
         Rf = _random_cov(rng, 0.02)
         fix = _Fix((0.0, 2, "", "", 0), 0.0, pose=target, pose_cov=Rf, gate=False)
-        xf, Pf, res = f._apply_fix(x, P, fix)
+        xf, Pf, res = f._apply_fix(xs, Ps, fix)
+        xf, Pf = np.reshape(xf, (3, 1)), _cov33(Pf)
         ref = kalman.ExtendedKalmanFilter(dim_x=3, dim_z=3)
         ref.x, ref.P = x.copy(), P.copy()
         zt = target.reshape(3, 1).copy()

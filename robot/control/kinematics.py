@@ -46,6 +46,8 @@ class MecanumKinematics:
                                        [-1.0 / L, 1.0 / L, -1.0 / L, 1.0 / L]])
         # unit vector orthogonal to J's columns: rigid rolling always has w_FL + w_FR = w_RL + w_RR
         self.n_slip = np.array([1.0, 1.0, -1.0, -1.0]) / 2.0
+        # F's rows are orthogonal, so equal independent wheel noise s2 gives s2 F F^T, a diagonal.
+        self._FFt = self.F @ self.F.T
 
     @classmethod
     def from_config(cls, config: ChassisConfig) -> MecanumKinematics:
@@ -57,6 +59,12 @@ class MecanumKinematics:
 
     def forward(self, wheels: ArrayLike) -> np.ndarray:
         """Twist (vx, vy, wz) of wheel speeds (..., 4) in rad/s: least squares over the 4 wheels."""
+        if isinstance(wheels, tuple) and len(wheels) == 4 and not isinstance(wheels[0], (tuple, list, np.ndarray)):
+            # One odometry sample, a hundred times a second on the event loop: floats cost a
+            # fraction of numpy's per-call overhead.
+            w0, w1, w2, w3 = float(wheels[0]), float(wheels[1]), float(wheels[2]), float(wheels[3])
+            q = 0.25 * self.r
+            return np.array([q * (w0 + w1 + w2 + w3), q * (w1 + w2 - w0 - w3), q * (w1 + w3 - w0 - w2) / self.L])
         return np.asarray(wheels, dtype=float) @ self.F.T
 
     def slip_residual(self, wheels: ArrayLike) -> np.ndarray:
@@ -72,6 +80,8 @@ class MecanumKinematics:
         ``wheel_variance``: one variance (rad/s)^2 for all wheels, four per-wheel variances, or a
         full 4x4 covariance. Equal independent noise s2 gives diag(r^2 s2/4, r^2 s2/4, r^2 s2/(4 L^2)).
         """
+        if isinstance(wheel_variance, float):
+            return self._FFt * wheel_variance
         v = np.asarray(wheel_variance, dtype=float)
         if v.ndim == 0:
             cov_w = np.eye(4) * float(v)

@@ -122,12 +122,29 @@ def _motion(vx: float, vy: float, wz: float, Q: Sequence[Sequence[float]], dt: f
 
 _ZERO_Q = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
+# Inside the history a state is a tuple (x, y, phi) and a covariance the tuple of its upper
+# triangle (p00, p01, p02, p11, p12, p22): symmetric by construction, and a replay step builds no
+# numpy arrays (each costs a microsecond or two, several per step on the Nano's Python 3.8).
+# Arrays are made only at the public API (``state``, ``predicted``).
+State = Tuple[float, float, float]
+Cov6 = Tuple[float, float, float, float, float, float]
+
+
+def _cov6(C: np.ndarray) -> Cov6:
+    """The upper triangle of a (checked, symmetric up to rounding) 3x3 covariance, symmetrised."""
+    (a, b, c), (d, e, f), (g, h, i) = np.asarray(C, dtype=float).tolist()
+    return (a, 0.5 * (b + d), 0.5 * (c + g), e, 0.5 * (f + h), i)
+
+
+def _cov33(P: Cov6) -> np.ndarray:
+    p00, p01, p02, p11, p12, p22 = P
+    return np.array([[p00, p01, p02], [p01, p11, p12], [p02, p12, p22]])
+
 
 def _joseph(P: Sequence[Sequence[float]], A: Sequence[Sequence[float]], K: Sequence[Sequence[float]],
-            R: Sequence[Sequence[float]]) -> np.ndarray:
+            R: Sequence[Sequence[float]]) -> Cov6:
     """A P A^T + K R K^T (the Joseph form of the update, A = I - K H), symmetrised, for a 3-state
-    filter and an m-dimensional measurement, written out in floats: numpy's per-call cost is
-    several times the arithmetic of these small matrices."""
+    filter and an m-dimensional measurement, in floats (the pose fix's; a wall has its own below)."""
     AP = [[A[i][0] * P[0][j] + A[i][1] * P[1][j] + A[i][2] * P[2][j] for j in range(3)] for i in range(3)]
     m = len(R)
     KR = [[sum(K[i][k] * R[k][j] for k in range(m)) for j in range(m)] for i in range(3)]
@@ -139,7 +156,7 @@ def _joseph(P: Sequence[Sequence[float]], A: Sequence[Sequence[float]], K: Seque
             w = (AP[j][0] * A[i][0] + AP[j][1] * A[i][1] + AP[j][2] * A[i][2]
                  + sum(KR[j][k] * K[i][k] for k in range(m)))
             out[i][j] = out[j][i] = 0.5 * (v + w)
-    return np.array(out)
+    return (out[0][0], out[0][1], out[0][2], out[1][1], out[1][2], out[2][2])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -150,8 +167,8 @@ def _joseph(P: Sequence[Sequence[float]], A: Sequence[Sequence[float]], K: Seque
 class _Odom:
     key: Key
     t: float
-    twist: np.ndarray  # (3,) mean body twist over the interval ending at t
-    Q: np.ndarray  # (3, 3) covariance of that mean twist
+    twist: Tuple[float, float, float]  # mean body twist over the interval ending at t
+    Q: Tuple[Tuple[float, float, float], ...]  # its covariance (3x3 rows, symmetric)
     # Caches, dropped when a gyro sample lands in the interval: (vx, vy, wz, Q rows, length) with
     # the gyro fused in, and the motion of each piece (t0, t1) of the interval a replay used.
     interval: Optional[Tuple[float, float, float, Tuple[Tuple[float, ...], ...], float]] = None
@@ -175,8 +192,8 @@ class _Fix:
 class _Checkpoint:
     key: Key
     t: float
-    x: np.ndarray  # (3, 1), filterpy's layout; never modified in place once stored
-    P: np.ndarray  # (3, 3)
+    x: State
+    P: Cov6
 
 
 def _after_odom(t: float) -> Key:
@@ -217,11 +234,10 @@ def _is_covariance(C: np.ndarray, n: int) -> bool:
     return bool(np.linalg.eigvalsh(C)[0] >= -1e-12 * scale)
 
 
-def _is_covariance3(C: np.ndarray) -> bool:
-    """``_is_covariance(C, 3)`` without LAPACK for the usual (diagonally dominant) case."""
-    if C.shape != (3, 3):
-        return False
-    (a, b, c), (d, e, f), (g, h, i) = C.tolist()
+def _is_covariance3(rows: Sequence[Sequence[float]], C: np.ndarray) -> bool:
+    """``_is_covariance(C, 3)`` without LAPACK for the usual (diagonally dominant) case; ``rows``
+    is ``C.tolist()`` (its caller has it already)."""
+    (a, b, c), (d, e, f), (g, h, i) = rows
     if not _all_finite(a, b, c, d, e, f, g, h, i):
         return False
     scale = max(1e-300, abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
@@ -278,13 +294,13 @@ class PoseFilter:
         # The state after each input, as parallel lists (bisected by key and by time, never scanned).
         self._cp_keys: List[Key] = []
         self._cp_t: List[float] = []
-        self._cp_x: List[np.ndarray] = []
-        self._cp_P: List[np.ndarray] = []
+        self._cp_x: List[State] = []
+        self._cp_P: List[Cov6] = []
         self._dirty: Optional[Key] = None
         self._seq = 0
         # predicted(t) for the last t asked, until the next input: the control tick and the frame
         # pipeline ask for the same instant more than once.
-        self._memo: Optional[Tuple[float, float, float, float, np.ndarray]] = None
+        self._memo: Optional[Tuple[float, float, float, float, Cov6]] = None
 
     # -- public API -------------------------------------------------------------------------
 
@@ -303,8 +319,7 @@ class PoseFilter:
         if not _finite([t, x, y, phi]) or not _is_covariance(cov, 3):
             raise ValueError("set_pose needs a finite pose and a symmetric positive semi-definite 3x3 covariance")
         key: Key = (float(t), _KIND_BASE, "", "", 0)
-        x0 = np.array([[float(x)], [float(y)], [float(wrap_angle(phi))]])
-        self._base = _Checkpoint(key, float(t), x0, cov.copy())
+        self._base = _Checkpoint(key, float(t), (float(x), float(y), float(wrap_angle(phi))), _cov6(cov))
         self._odom, self._odom_keys, self._odom_t = [], [], []
         self._odom_origin = float(t)
         self._gyro_t, self._gyro = [], []
@@ -322,7 +337,8 @@ class PoseFilter:
             t, vx, vy, wz = float(t), float(vx), float(vy), float(wz)
         except (TypeError, ValueError):
             t = math.nan
-        if not _all_finite(t, vx, vy, wz) or not _is_covariance3(Q):
+        rows = Q.tolist() if Q.shape == (3, 3) else None
+        if not _all_finite(t, vx, vy, wz) or rows is None or not _is_covariance3(rows, Q):
             return UpdateResult(False, math.nan, "odometry rejected: non-finite twist or bad covariance")
         if self._base is None:
             return UpdateResult(False, math.nan, "odometry ignored: the pose is not set")
@@ -334,8 +350,9 @@ class PoseFilter:
         prev_end = self._odom[-1].t if self._odom else self._odom_origin
         key: Key = (t, _KIND_ODOM, "", "", 0)
         # Symmetrised as stored; an exactly symmetric Q (the usual) is its own symmetric part.
-        Qs = Q.copy() if (Q == Q.T).all() else 0.5 * (Q + Q.T)
-        self._odom.append(_Odom(key, t, np.array([vx, vy, wz]), Qs))
+        (q00, q01, q02), (q10, q11, q12), (q20, q21, q22) = rows
+        a, b, c = 0.5 * (q01 + q10), 0.5 * (q02 + q20), 0.5 * (q12 + q21)
+        self._odom.append(_Odom(key, t, (vx, vy, wz), ((q00, a, b), (a, q11, c), (b, c, q22))))
         self._odom_keys.append(key)
         self._odom_t.append(t)
         # Fixes after the previous sample were predicted with the held twist: redo them.
@@ -443,8 +460,8 @@ class PoseFilter:
         self._require()
         self._ensure()
         if self._cp_keys:
-            return self._cp_t[-1], self._cp_x[-1].reshape(3).copy(), self._cp_P[-1].copy()
-        return self._base.t, self._base.x.reshape(3).copy(), self._base.P.copy()
+            return self._cp_t[-1], np.array(self._cp_x[-1]), _cov33(self._cp_P[-1])
+        return self._base.t, np.array(self._base.x), _cov33(self._base.P)
 
     def predicted(self, t: float) -> Tuple[float, float, float, np.ndarray]:
         """(x, y, phi, P) at time t, from the inputs up to t, without changing the filter.
@@ -456,7 +473,7 @@ class PoseFilter:
         self._ensure()
         memo = self._memo
         if memo is not None and memo[0] == t:
-            return memo[1], memo[2], memo[3], memo[4].copy()
+            return memo[1], memo[2], memo[3], _cov33(memo[4])
         i = bisect.bisect_right(self._cp_t, t)
         if i > 0:
             t0, x, P = self._cp_t[i - 1], self._cp_x[i - 1], self._cp_P[i - 1]
@@ -464,9 +481,8 @@ class PoseFilter:
             t0, x, P = self._base.t, self._base.x, self._base.P
         if t > t0:
             x, P = self._propagate(x, P, t0, float(t))
-        out = (x.item(0), x.item(1), x.item(2))
-        self._memo = (t, out[0], out[1], out[2], P)
-        return out[0], out[1], out[2], P.copy()
+        self._memo = (t, x[0], x[1], x[2], P)
+        return x[0], x[1], x[2], _cov33(P)
 
     @property
     def history_start(self) -> float:
@@ -587,8 +603,8 @@ class PoseFilter:
         if o.interval is not None:
             return o.interval
         start = self._odom_t[i - 1] if i > 0 else self._odom_origin
-        vx, vy, wz = o.twist.tolist()
-        Q = o.Q.tolist()
+        vx, vy, wz = o.twist
+        Q = [list(r) for r in o.Q]
         a = bisect.bisect_right(self._gyro_t, start)
         b = bisect.bisect_right(self._gyro_t, o.t)
         if b > a:
@@ -610,7 +626,7 @@ class PoseFilter:
         o.interval = (vx, vy, wz, tuple(tuple(r) for r in Q), o.t - start)
         return o.interval
 
-    def _propagate(self, x: np.ndarray, P: np.ndarray, t0: float, t1: float) -> Tuple[np.ndarray, np.ndarray]:
+    def _propagate(self, x: State, P: Cov6, t0: float, t1: float) -> Tuple[State, Cov6]:
         """Predict from t0 to t1 along the odometry schedule (no odometry input strictly inside)."""
         if t1 <= t0:
             return x, P
@@ -627,13 +643,13 @@ class PoseFilter:
             t_mid = min(t1, hold_end)
             mo = _motion(vx, vy, wz, Q, t_mid - t0, 1.0, cfg)
             # Provisional: the robot may have stopped at once or kept going.
-            x, P = self._predict(x, P, mo, _spread(x.item(2), mo[0], mo[1], mo[2], 0.5))
+            x, P = self._predict(x, P, mo, _spread(x[2], mo[0], mo[1], mo[2], 0.5))
             t0 = t_mid
         if t1 > t0:
             x, P = self._predict(x, P, _motion(0.0, 0.0, 0.0, _ZERO_Q, t1 - t0, 1.0, cfg))
         return x, P
 
-    def _propagate_in(self, i: int, x: np.ndarray, P: np.ndarray, t0: float, t1: float) -> Tuple[np.ndarray, np.ndarray]:
+    def _propagate_in(self, i: int, x: State, P: Cov6, t0: float, t1: float) -> Tuple[State, Cov6]:
         """Predict from t0 to t1 inside odometry interval i (t0 < t1 <= its end)."""
         o = self._odom[i]
         piece_key = (t0, t1)
@@ -649,16 +665,15 @@ class PoseFilter:
             # A gap split by a fix: where in the gap the motion happened is unknown.
             A, B, _, _ = arc_coefficients(wz * dt_int)
             f = piece / dt_int
-            extra = _spread(x.item(2), dt_int * (A * vx - B * vy), dt_int * (B * vx + A * vy), wz * dt_int,
+            extra = _spread(x[2], dt_int * (A * vx - B * vy), dt_int * (B * vx + A * vy), wz * dt_int,
                             0.5 * max(f, 1.0 - f))
             return self._predict(x, P, mo, extra)
         return self._predict(x, P, mo)
 
-    def _predict(self, x: np.ndarray, P: np.ndarray, mo: Motion,
-                 extra: Optional[Extra] = None) -> Tuple[np.ndarray, np.ndarray]:
+    def _predict(self, x: State, P: Cov6, mo: Motion, extra: Optional[Extra] = None) -> Tuple[State, Cov6]:
         """One filterpy prediction of motion ``mo`` from (x, P); F and Q built from floats."""
         i0, i1, i2, a, b, e, d, f, g, var_pos, var_phi = mo
-        phi = x.item(2)
+        px, py, phi = x
         c, s = math.cos(phi), math.sin(phi)
         # Q = Rg (D Q_twist D^T) Rg^T + floor: the start-frame noise turned into G.
         n00, n01, n10, n11 = c * a - s * b, c * b - s * d, s * a + c * b, s * b + c * d
@@ -673,28 +688,26 @@ class PoseFilter:
             q11, q12, q22 = q11 + extra[3], q12 + extra[4], q22 + extra[5]
         gx, gy = c * i0 - s * i1, s * i0 + c * i1
         # x' = x + (gx, gy, i2); P' = F P F^T + Q with F = [[1, 0, -gy], [0, 1, gx], [0, 0, 1]].
-        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P.tolist()
-        a00, a01, a02 = p00 - gy * p20, p01 - gy * p21, p02 - gy * p22  # rows of F P
-        a10, a11, a12 = p10 + gx * p20, p11 + gx * p21, p12 + gx * p22
-        b01, b10 = a01 + gx * a02, a10 - gy * a12  # (F P F^T)[0][1] and [1][0]: equal up to rounding
-        b02, b20 = a02, p20 - gy * p22
-        b12, b21 = a12, p21 + gx * p22
-        m01, m02, m12 = q01 + 0.5 * (b01 + b10), q02 + 0.5 * (b02 + b20), q12 + 0.5 * (b12 + b21)
-        xn = np.array([[x.item(0) + gx], [x.item(1) + gy], [wrap_angle(phi + i2)]])
-        Pn = np.array([[a00 - gy * a02 + q00, m01, m02], [m01, a11 + gx * a12 + q11, m12], [m02, m12, p22 + q22]])
-        return xn, Pn
+        p00, p01, p02, p11, p12, p22 = P
+        a00, a01, a02 = p00 - gy * p02, p01 - gy * p12, p02 - gy * p22  # rows of F P
+        a10, a11, a12 = p01 + gx * p02, p11 + gx * p12, p12 + gx * p22
+        # (F P F^T)[0][1] and [1][0] are equal up to rounding: their mean keeps P' symmetric.
+        m01 = q01 + 0.5 * ((a01 + gx * a02) + (a10 - gy * a12))
+        return ((px + gx, py + gy, wrap_angle(phi + i2)),
+                (a00 - gy * a02 + q00, m01, a02 + q02, a11 + gx * a12 + q11, a12 + q12, p22 + q22))
 
-    def _apply_plane(self, x: np.ndarray, P: np.ndarray, model: tuple):
+    def _apply_plane(self, x: State, P: Cov6, model: tuple) -> Tuple[State, Cov6, UpdateResult]:
         n0, n1, dg, ang, z0, z1, r00, r01, r10, r11, what = model
-        px, py, phi = x.item(0), x.item(1), x.item(2)
+        px, py, phi = x
         y0 = z0 - (n0 * px + n1 * py + dg)
         y1 = wrap_angle(z1 - wrap_angle(ang - phi))
-        (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = P.tolist()
-        # S = H P H^T + R with H = [[n0, n1, 0], [0, 0, -1]]
-        h0, h1, h2 = n0 * p00 + n1 * p10, n0 * p01 + n1 * p11, n0 * p02 + n1 * p12
-        s00 = h0 * n0 + h1 * n1 + r00
-        s01 = r01 - h2
-        s10 = r10 - (p20 * n0 + p21 * n1)
+        p00, p01, p02, p11, p12, p22 = P
+        # P H^T with H = [[n0, n1, 0], [0, 0, -1]]: columns (u0, u1, u2) and (-p02, -p12, -p22).
+        u0, u1, u2 = p00 * n0 + p01 * n1, p01 * n0 + p11 * n1, p02 * n0 + p12 * n1
+        # S = H P H^T + R
+        s00 = n0 * u0 + n1 * u1 + r00
+        s01 = r01 - u2
+        s10 = r10 - u2
         s11 = p22 + r11
         det = s00 * s11 - s01 * s10
         if det == 0.0 or not math.isfinite(det):
@@ -706,18 +719,34 @@ class PoseFilter:
 
         # K = P H^T S^-1, x' = x + K y, P' = (I - K H) P (I - K H)^T + K R K^T (filterpy's update).
         si00, si01, si10, si11 = s11 / det, -s01 / det, -s10 / det, s00 / det
-        pht = ((p00 * n0 + p01 * n1, -p02), (p10 * n0 + p11 * n1, -p12), (p20 * n0 + p21 * n1, -p22))
-        K = [(a * si00 + b * si10, a * si01 + b * si11) for a, b in pht]
-        A = [[(1.0 if i == 0 else 0.0) - k0 * n0, (1.0 if i == 1 else 0.0) - k0 * n1, (1.0 if i == 2 else 0.0) + k1]
-             for i, (k0, k1) in enumerate(K)]
-        xn = np.array([[px + K[0][0] * y0 + K[0][1] * y1], [py + K[1][0] * y0 + K[1][1] * y1],
-                       [wrap_angle(phi + K[2][0] * y0 + K[2][1] * y1)]])
-        return xn, _joseph(((p00, p01, p02), (p10, p11, p12), (p20, p21, p22)), A, K, ((r00, r01), (r10, r11))), \
-            UpdateResult(True, d2, "")
+        k00, k01 = u0 * si00 - p02 * si10, u0 * si01 - p02 * si11
+        k10, k11 = u1 * si00 - p12 * si10, u1 * si01 - p12 * si11
+        k20, k21 = u2 * si00 - p22 * si10, u2 * si01 - p22 * si11
+        xn = (px + k00 * y0 + k01 * y1, py + k10 * y0 + k11 * y1, wrap_angle(phi + k20 * y0 + k21 * y1))
+        # Rows of A = I - K H.
+        a00, a01, a02 = 1.0 - k00 * n0, -k00 * n1, k01
+        a10, a11, a12 = -k10 * n0, 1.0 - k10 * n1, k11
+        a20, a21, a22 = -k20 * n0, -k20 * n1, 1.0 + k21
+        # Rows of A P (P symmetric).
+        b00, b01, b02 = a00 * p00 + a01 * p01 + a02 * p02, a00 * p01 + a01 * p11 + a02 * p12, a00 * p02 + a01 * p12 + a02 * p22
+        b10, b11, b12 = a10 * p00 + a11 * p01 + a12 * p02, a10 * p01 + a11 * p11 + a12 * p12, a10 * p02 + a11 * p12 + a12 * p22
+        b20, b21, b22 = a20 * p00 + a21 * p01 + a22 * p02, a20 * p01 + a21 * p11 + a22 * p12, a20 * p02 + a21 * p12 + a22 * p22
+        # K R K^T with R's symmetric part (what the symmetrised Joseph form keeps of it).
+        rs = 0.5 * (r01 + r10)
+        c00, c01 = k00 * r00 + k01 * rs, k00 * rs + k01 * r11
+        c10, c11 = k10 * r00 + k11 * rs, k10 * rs + k11 * r11
+        c20, c21 = k20 * r00 + k21 * rs, k20 * rs + k21 * r11
+        return xn, (b00 * a00 + b01 * a01 + b02 * a02 + c00 * k00 + c01 * k01,
+                    0.5 * (b00 * a10 + b01 * a11 + b02 * a12 + b10 * a00 + b11 * a01 + b12 * a02) + c00 * k10 + c01 * k11,
+                    0.5 * (b00 * a20 + b01 * a21 + b02 * a22 + b20 * a00 + b21 * a01 + b22 * a02) + c00 * k20 + c01 * k21,
+                    b10 * a10 + b11 * a11 + b12 * a12 + c10 * k10 + c11 * k11,
+                    0.5 * (b10 * a20 + b11 * a21 + b12 * a22 + b20 * a10 + b21 * a11 + b22 * a12) + c10 * k20 + c11 * k21,
+                    b20 * a20 + b21 * a21 + b22 * a22 + c20 * k20 + c21 * k21), UpdateResult(True, d2, "")
 
-    def _apply_fix(self, x: np.ndarray, P: np.ndarray, fix: _Fix):
+    def _apply_fix(self, x: State, P6: Cov6, fix: _Fix) -> Tuple[State, Cov6, UpdateResult]:
         """An absolute pose fix (rare: an operator, a global solve); H = I, in numpy."""
-        xv = x.reshape(3)
+        xv = np.array(x)
+        P = _cov33(P6)
         R = fix.pose_cov
         y = fix.pose - xv
         y[2] = wrap_angle(float(y[2]))  # the short way round
@@ -727,9 +756,9 @@ class PoseFilter:
             d2 = float(y @ np.linalg.solve(S, y))
             K = P @ np.linalg.inv(S)
         except np.linalg.LinAlgError:
-            return x, P, UpdateResult(False, math.nan, f"{what}: singular innovation covariance")
+            return x, P6, UpdateResult(False, math.nan, f"{what}: singular innovation covariance")
         if not math.isfinite(d2) or d2 > threshold:
-            return x, P, UpdateResult(False, d2, f"{what}: gated out (d^2 = {d2:.1f} > {threshold:.1f})")
-        xn = (xv + K @ y).reshape(3, 1)
-        xn[2, 0] = wrap_angle(float(xn[2, 0]))
-        return xn, _joseph(P.tolist(), (np.eye(3) - K).tolist(), K.tolist(), R.tolist()), UpdateResult(True, d2, "")
+            return x, P6, UpdateResult(False, d2, f"{what}: gated out (d^2 = {d2:.1f} > {threshold:.1f})")
+        x0, x1, x2 = (xv + K @ y).tolist()
+        return (x0, x1, wrap_angle(x2)), _joseph(P.tolist(), (np.eye(3) - K).tolist(), K.tolist(), R.tolist()), \
+            UpdateResult(True, d2, "")
