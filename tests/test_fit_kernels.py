@@ -180,6 +180,44 @@ def test_behind_count_equals_numpy(numba_backend, seed):
                 assert ref == pf._behind_points(rx[::stride], ry[::stride], z[::stride], n, d, pi_pred, params, matters)
 
 
+def gather_reference(depth, rows, cols, stride, scale, zmin, zmax, ray_cols, ray_rows):
+    """The gather as plainly as numpy says it: 2-D index, metres, range limits, rays."""
+    z = depth[rows * stride, cols * stride].astype(np.float64) * scale
+    ok = (z > zmin) & (z < zmax)
+    return z[ok], ray_cols[cols[ok]], ray_rows[rows[ok]], len(rows)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_gather_kernel_equals_numpy(numba_backend, seed):
+    """Depths, rays and ROI size bit for bit: holes (0), depths beyond either range limit, every
+    stride, and an image that is not contiguous (a view), which takes the numpy path."""
+    rng = np.random.default_rng(300 + seed)
+    stride = 1 + seed % 4
+    h, w = 480, 848
+    depth = rng.integers(0, 12000, size=(h, w)).astype(np.uint16)
+    depth[rng.random((h, w)) < 0.1] = 0
+    gh, gw = (h + stride - 1) // stride, (w + stride - 1) // stride
+    ray_cols, ray_rows = rng.normal(0, 0.5, gw), rng.normal(0, 0.4, gh)
+    n = int(rng.integers(0, 5000))
+    rows = rng.integers(0, gh, n).astype(np.int32)
+    cols = rng.integers(0, gw, n).astype(np.int32)
+    scale = float(rng.choice([0.001, 0.000998, 0.0001]))
+    ref = gather_reference(depth, rows, cols, stride, scale, 0.2, 10.0, ray_cols, ray_rows)
+    for backend in ("numba", "numpy"):
+        fk.set_backend(backend)
+        got = fk.gather_roi(depth, rows, cols, stride, scale, 0.2, 10.0, ray_cols, ray_rows)
+        assert got[3] == ref[3]
+        for a, b in zip(got[:3], ref[:3]):
+            assert a.dtype == np.float64 and np.array_equal(a, b)
+    padded = np.zeros((h, w + 8), np.uint16)
+    padded[:, :w] = depth
+    view = padded[:, :w]
+    assert not view.flags.c_contiguous
+    fk.set_backend("numba")
+    got = fk.gather_roi(view, rows, cols, stride, scale, 0.2, 10.0, ray_cols, ray_rows)
+    assert all(np.array_equal(a, b) for a, b in zip(got[:3], ref[:3])) and got[3] == ref[3]
+
+
 @pytest.mark.parametrize("seed", range(20))
 def test_covariance_kernels_equal_numpy_inverses(numba_backend, seed):
     rng = np.random.default_rng(300 + seed)

@@ -9,7 +9,9 @@ cost. Here each of those parts is one numba-compiled function:
 * the hypothesis scoring of identification (``plane_fit._score``);
 * the share of points behind a surface (the first pass of ``plane_fit._behind_points``);
 * the plane's covariance from the normal equations (three 3 x 3 inverses and products);
-* the inlier summary (centroid, depth, spread) and ``plane_fit._not_flat``'s half-patch sums.
+* the inlier summary (centroid, depth, spread) and ``plane_fit._not_flat``'s half-patch sums;
+* the gather of a wall's ROI: its pixels' depths in metres, those within the range limits and
+  their rays (``gather_roi``; its numpy code is the localizer's, kept here beside it).
 
 The numpy code in ``plane_fit`` stays the reference and the fallback. The kernels repeat its
 arithmetic operation for operation, so they agree with it to the rounding of its sums and
@@ -103,7 +105,8 @@ def set_backend(name: Optional[str]) -> str:
     return _backend
 
 
-_KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "_inv_kernel", "_summary_kernel")
+_KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "_inv_kernel", "_summary_kernel",
+            "_gather_kernel")
 
 
 def _load() -> None:
@@ -160,6 +163,9 @@ def _run_each_kernel() -> None:
     _nb["_cov_kernel"](H, B, n_c, 2.0, 1.0)
     _nb["_inv_kernel"](H)
     _nb["_summary_kernel"](rx, ry, z, mask, 1, B[0], B[1], n_c, 2.0, True)
+    depth = np.full((4, 4), 1500, np.uint16)
+    idx = np.arange(3, dtype=np.int32)  # the ROI's rows and columns come as int32 (cv2.findNonZero)
+    _nb["_gather_kernel"](depth.ravel(), idx, idx, 4, 1, 0.001, 0.2, 10.0, np.zeros(4), np.zeros(4))
 
 
 def _f64(a: np.ndarray) -> np.ndarray:
@@ -235,6 +241,29 @@ def inlier_summary(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, mask: np.ndarr
     k, sums, hs = _nb["_summary_kernel"](_f64(rx), _f64(ry), _f64(z), np.ascontiguousarray(mask, np.bool_), int(stride),
                                          _f64(h), _f64(v), _f64(n), float(d), bool(halves))
     return int(k), sums, ((hs[0], hs[1], hs[2], hs[3], hs[4]) if halves and k >= 40 else None)
+
+
+def gather_roi(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, stride: int, depth_scale: float,
+               min_range: float, max_range: float, ray_cols: np.ndarray, ray_rows: np.ndarray
+               ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """The depth (m) of grid pixels (rows, cols) of a uint16 depth image sampled every ``stride``
+    pixels, kept where min_range < z < max_range, and the kept pixels' rays: (z, rx, ry, the
+    number of ROI pixels). Compiled when the backend is numba, else numpy (the reference)."""
+    w = depth.shape[1]
+    if backend() == "numba" and depth.flags.c_contiguous:
+        z, rx, ry = _nb["_gather_kernel"](depth.ravel(), rows, cols, stride * w, stride, float(depth_scale),
+                                          float(min_range), float(max_range), ray_cols, ray_rows)
+        return z, rx, ry, len(rows)
+    # One flat gather costs two thirds of a 2-D fancy index (the same pixels).
+    if depth.flags.c_contiguous:
+        z = depth.ravel().take(rows * (stride * w) + cols * stride) * depth_scale
+    else:
+        z = depth[rows * stride, cols * stride] * depth_scale
+    n_roi = len(z)
+    ok = (z > min_range) & (z < max_range)
+    if np.count_nonzero(ok) < n_roi:
+        z, rows, cols = z[ok], rows[ok], cols[ok]
+    return z, ray_cols.take(cols), ray_rows.take(rows), n_roi
 
 
 def _probe_fused() -> bool:
@@ -533,3 +562,22 @@ def _summary_kernel(rx, ry, z, mask, stride, h, v, n, d, halves):  # pragma: no 
             hs[3, side] += a * a
             hs[4, side] += a * res[j]
     return k, sums, hs
+
+
+def _gather_kernel(flat, rows, cols, row_step, stride, scale, zmin, zmax, ray_cols, ray_rows):  # pragma: no cover (compiled)
+    """gather_roi's numpy code in one pass (uint16 times a double rounds as numpy's does)."""
+    n = rows.shape[0]
+    z = np.empty(n)
+    rx = np.empty(n)
+    ry = np.empty(n)
+    k = 0
+    for i in range(n):
+        r = rows[i]
+        c = cols[i]
+        v = flat[r * row_step + c * stride] * scale
+        if v > zmin and v < zmax:
+            z[k] = v
+            rx[k] = ray_cols[c]
+            ry[k] = ray_rows[r]
+            k += 1
+    return z[:k], rx[:k], ry[:k]

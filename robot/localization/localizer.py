@@ -30,6 +30,7 @@ from robot.base.errors import InputError
 from robot.base.geometry import pose_to_T_ground_robot, wrap_angle
 from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, LocalizerConfig, RobotConfig
+from robot.localization.fit_kernels import gather_roi
 from robot.localization.integrity import Checker, ErrorModel, Integrity, Observation, Stack, observation
 from robot.localization.measurements import PlaneMeasurement
 from robot.localization.plane_fit import FitParams, cross, fit_plane
@@ -487,8 +488,6 @@ class Localizer:
         up_camera = T_robot_camera[2, :3]  # the robot's z axis in the camera frame: R_RC^T e_z
         inflation = self.errors.correlation_inflation(stride / geo.scale)
         depth_scale = float(frame.depth_scale)
-        flat = frame.depth.ravel() if frame.depth.flags.c_contiguous else None
-        row_step = stride * w
         out: List[_WallFit] = []
         for view in views:
             if view.pixels == 0 and view.box[2] >= view.box[0]:
@@ -499,16 +498,8 @@ class Localizer:
                 out.append(_WallFit(PlaneReport(view.plane_id, cam.name, 0, None, None, False,
                                                 f"ROI too small after occlusion and margin ({len(rr)} grid pixels)")))
                 continue
-            # One flat gather costs two thirds of a 2-D fancy index (the same pixels).
-            if flat is not None:
-                z = flat.take(rr * row_step + cc * stride) * depth_scale
-            else:
-                z = frame.depth[rr * stride, cc * stride] * depth_scale
-            n_roi = len(z)
-            ok = (z > p.min_range) & (z < p.max_range)
-            if np.count_nonzero(ok) < n_roi:
-                z, rr, cc = z[ok], rr[ok], cc[ok]
-            rx, ry = geo.ray_cols.take(cc), geo.ray_rows.take(rr)
+            z, rx, ry, n_roi = gather_roi(frame.depth, rr, cc, stride, depth_scale, p.min_range, p.max_range,
+                                          geo.ray_cols, geo.ray_rows)
             params = self._fit_params(geo, float(frame.depth_scale), cov, plane.normal, up_camera,
                                       abs(float(view.pi_camera[3])), plane.tolerance)
             fit = fit_plane(rx, ry, z, view.pi_camera, params, starts.get((cam.name, plane.id)))
