@@ -13,10 +13,12 @@ from firmware_protocol.frame import MAX_ENCODED, PROTOCOL_VERSION, FrameError, e
 from firmware_protocol.messages import MESSAGE_TYPES, Message, UnknownMessage
 
 
-def encode(message: Message, version: int = PROTOCOL_VERSION) -> bytes:
-    """Wire bytes (0x00, COBS frame, 0x00) of a message; ValueError if a field does not fit its type."""
+def encode(message: Message, version: int = PROTOCOL_VERSION, seq: Optional[int] = None) -> bytes:
+    """Wire bytes (0x00, COBS frame, 0x00) of a message; ValueError if a field does not fit its type.
+    ``seq`` numbers the frame instead of ``message.seq`` (a sender numbering every frame it makes
+    need not copy a frozen message for it)."""
     msg_id = message.msg_id if isinstance(message, UnknownMessage) else message.MSG_ID
-    return encode_frame(msg_id, message.seq, message.payload(), version=version)
+    return encode_frame(msg_id, message.seq if seq is None else seq, message.payload(), version=version)
 
 
 @dataclass

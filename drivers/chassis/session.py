@@ -21,7 +21,6 @@ odometry stays continuous across reconnects.
 from __future__ import annotations
 
 import collections
-import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import Counter, Deque, List, Optional, Sequence, Tuple
@@ -178,7 +177,7 @@ class HostSession:
         seq = self._tx_seq
         self._tx_seq = (seq + 1) & 0xFF
         self.last_seq = seq
-        return encode(dataclasses.replace(msg, seq=seq))
+        return encode(msg, seq=seq)
 
     # The handshake  -----------------------------------------------------------------------------
 

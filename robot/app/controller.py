@@ -59,6 +59,7 @@ from robot.recording.recorder import BackgroundRecorder, NullRecorder, Recorder
 
 log = logging.getLogger(__name__)
 
+_STREAMING = CameraState.STREAMING.value  # (an enum's .value is a descriptor call: this is read per frame)
 RECOVERY_POLL = 0.2  # s between looks at whether the recovery supervisor wants a relocalization
 
 # The default 5 ms switch interval lets the localization thread hold the GIL for up to 5 ms
@@ -486,7 +487,7 @@ class RobotApp:
         deadline = time.monotonic() + wait
         while True:
             missing = [name for name, frame in self._slots.items()
-                       if frame is None and self.camera_states.get(name) == CameraState.STREAMING.value]
+                       if frame is None and self.camera_states.get(name) == _STREAMING]
             left = deadline - time.monotonic()
             if not missing or left <= 0:
                 return

@@ -60,6 +60,7 @@ _KIND_ODOM = 0
 _KIND_PLANE = 1
 _KIND_POSE = 2
 _KIND_BASE = -1
+TRIM_BATCH = 32  # expired history states dropped together (see PoseFilter._trim)
 
 # The filter runs at the odometry rate and replays its history for every lagged fix, so the
 # per-step work is plain floats on cached, state-independent parts: the EKF's predict and update
@@ -575,9 +576,12 @@ class PoseFilter:
         horizon = self._newest_time() - cfg.history
         n = bisect.bisect_left(self._cp_t, horizon)
         excess = len(self._cp_t) - cfg.max_events
-        n = max(n, excess)
-        if n <= 0:
+        # Expired states go TRIM_BATCH at a time: every input would otherwise shift the front of
+        # five lists of hundreds of entries by one. The history then reaches at most that many
+        # events further back than ``history`` (measurements there are still applied exactly).
+        if n < TRIM_BATCH and excess <= 0:
             return
+        n = max(n, excess)
         self._base = _Checkpoint(self._cp_keys[n - 1], self._cp_t[n - 1], self._cp_x[n - 1], self._cp_P[n - 1])
         del self._cp_keys[:n], self._cp_t[:n], self._cp_x[:n], self._cp_P[:n]
         new_key = self._base.key
