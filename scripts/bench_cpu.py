@@ -1134,7 +1134,22 @@ def imports(python: str, modules: Sequence[str]) -> Dict[str, Any]:
 
 # -- workers and the report ------------------------------------------------------------------------
 
-WORKERS = {"localizer": localizer_steps, "controller": controller}
+def controller_memory(quick: bool) -> Dict[str, Any]:
+    """The controller's memory without the compiled kernels (run with ROBOT_KERNELS=numpy, the
+    light install): RSS after importing it and the peak of one working window at 2 x 30 Hz."""
+    import robot.app.controller  # noqa: F401  (imported before the RSS baseline)
+    import robot.sim.realtime  # noqa: F401
+    from robot.localization import fit_kernels
+
+    _malloc_trim()
+    rss_start = vm_status("VmRSS")
+    r = controller_window(30.0, 2.0 if quick else 5.0)
+    return {"backend": fit_kernels.backend(), "rss_start_mib": rss_start, "error": r.get("error"),
+            "window_start_rss_mib": r.get("window_rss0", float("nan")),
+            "window_peak_rss_mib": r.get("window_hwm", float("nan")), "hwm_reset": r.get("hwm_reset", False)}
+
+
+WORKERS = {"localizer": localizer_steps, "controller": controller, "memory_numpy": controller_memory}
 
 
 def worker(name: str, quick: bool) -> Dict[str, Any]:
@@ -1158,8 +1173,8 @@ def find_python38() -> Optional[str]:
     return None
 
 
-def run_worker(python: str, name: str, quick: bool) -> Dict[str, Any]:
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT))
+def run_worker(python: str, name: str, quick: bool, **extra_env: str) -> Dict[str, Any]:
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(ROOT), **extra_env)
     cmd = [python, str(Path(__file__).resolve()), "--worker", name] + (["--quick"] if quick else [])
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300 if quick else 1500)
@@ -1292,6 +1307,21 @@ def report_controller(r: Dict[str, Any]) -> Tuple[List[str], Optional[Dict[str, 
     if r.get("model"):
         fit = dict(r["model"], factor=m["factor"])
     return lines, fit
+
+
+def report_memory_numpy(r: Dict[str, Any]) -> List[str]:
+    """The light install's memory: the same controller without numba (and LLVM) loaded."""
+    if r.get("error"):
+        return [f"Without the compiled kernels: _{r['error']}_", ""]
+    if r.get("backend") != "numpy":
+        return [f"Without the compiled kernels: _the run used {r.get('backend')}, not numpy_", ""]
+    peak = (f"peak while it works **{r['window_peak_rss_mib']:.0f} MiB** (from {r['window_start_rss_mib']:.0f} MiB at "
+            "the window's start, measured as above)" if r.get("hwm_reset") else
+            "its working peak could not be separated from start-up on this kernel")
+    return [f"Without the compiled kernels (`ROBOT_KERNELS=numpy`, no numba or LLVM loaded; the install without "
+            f"the `perf` extra), one window at 2 x 30 Hz in a fresh process: {r['rss_start_mib']:.0f} MiB after "
+            f"its imports (the controller's and the benchmark's), {peak}. The difference to the figure above is what numba, LLVM and the "
+            "compiled kernels hold.", ""]
 
 
 def budget_lines(fit: Dict[str, float]) -> List[str]:
@@ -1453,6 +1483,7 @@ def run(quick: bool = False) -> str:
             continue
         lines, fit = report_controller(run_worker(python, "controller", quick))
         out += lines
+        out += report_memory_numpy(run_worker(python, "memory_numpy", quick, ROBOT_KERNELS="numpy"))
         if fit is not None:
             fits.append((label, fit))
     out += ["### Nano budget", ""]
