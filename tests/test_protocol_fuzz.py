@@ -62,6 +62,25 @@ def touched_by_drops(spans, drops) -> List[bool]:
     return out
 
 
+def touched_by_inserts(spans, inserts) -> List[bool]:
+    """Bytes inserted before position p of a frame's span break it, except at either end of its
+    body when the inserted run ends (at the front) or starts (at the back) with a delimiter: the
+    body is then still whole between two delimiters, and the rest of the run is a short piece of
+    garbage of its own."""
+    out = []
+    for a, b in spans:
+        hit = False
+        for p, ins in inserts.items():
+            if a + 1 < p < b - 1:
+                hit = True
+            elif p == a + 1 and ins[-1] != 0:
+                hit = True
+            elif p == b - 1 and ins[0] != 0:
+                hit = True
+        out.append(hit)
+    return out
+
+
 # Random bytes  ----------------------------------------------------------------------------------
 
 @settings(max_examples=300, deadline=None)
@@ -160,9 +179,19 @@ def test_dropped_bytes_lose_only_their_frames(seed, n_frames, n_drop, n_insert):
             out_bytes += inserts[i]
         if i not in drops:
             out_bytes.append(byte)
-    hit = [x or y for x, y in zip(touched_by_drops(spans, drops), touched(spans, list(inserts)))]
+    hit = [x or y for x, y in zip(touched_by_drops(spans, drops), touched_by_inserts(spans, inserts))]
     out = fp.Decoder().feed(bytes(out_bytes))
-    assert out == [m for m, h in zip(msgs, hit) if not h]
+    # Every frame the damage did not reach comes out, in order, and nothing that was not sent.
+    # A damaged frame may still come out whole where the damage left its body intact between two
+    # delimiters (a dropped delimiter next to an inserted one, say): the model above is exact for
+    # the usual cases only, so it decides what must come out, not what may.
+    got = iter(enumerate(msgs))
+    decoded = set()
+    for m in out:
+        j = next((j for j, sent in got if sent == m), None)
+        assert j is not None, f"decoded {m!r}, which was not sent (or out of order)"
+        decoded.add(j)
+    assert all(j in decoded for j, h in enumerate(hit) if not h)
 
 
 @settings(max_examples=150, deadline=None)
