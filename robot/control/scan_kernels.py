@@ -43,6 +43,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from robot.base.kernel_cache import cache_lock
 from robot.localization import fit_kernels
 
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher, once they compiled
@@ -81,7 +82,8 @@ def warm_up() -> float:
             return time.perf_counter() - t0
         try:
             _nb.update(_load())
-            _run_each_kernel()
+            with cache_lock():  # no other process of ours writes numba's cache meanwhile
+                _run_each_kernel()
         except Exception as e:
             _nb.clear()
             _failed = f"the scan's numba kernels did not compile: {type(e).__name__}: {e}".split("\n")[0]

@@ -50,6 +50,8 @@ from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from robot.base.kernel_cache import cache_lock
+
 if TYPE_CHECKING:  # plane_fit imports this module
     from robot.localization.plane_fit import FitParams
 
@@ -59,7 +61,8 @@ BACKENDS = ("auto", "numba", "numpy")
 _backend: Optional[str] = None  # "numba" or "numpy" once resolved
 _requested = "auto"  # what was asked for: only "auto" falls back to numpy when compiling fails
 _note = ""  # how the backend was chosen, for the start-up log
-_nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher (compiled at its first call)
+_nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher
+_compiled = False  # whether every kernel was compiled (or loaded from the cache), under the cache lock
 _fused = True  # whether numpy's float32 matrix product chains fused multiply-adds (probed)
 _probe_exact = True  # ... and whether the kernel then rounds exactly as it does
 _NO_COLS = np.zeros(0, np.intp)
@@ -99,6 +102,14 @@ def set_backend(name: Optional[str]) -> str:
                                "install the perf extra (pip install -e '.[perf]') or set ROBOT_KERNELS=numpy") from None
         _backend, _note, _requested = "numpy", f"numpy (numba does not import: {why})", name
         return _backend
+    try:
+        _compile_once()
+    except Exception as e:
+        if name == "numba":
+            raise
+        _backend, _requested = "numpy", name
+        _note = f"numpy (the numba kernels did not compile: {type(e).__name__}: {e})".split("\n")[0]
+        return _backend
     _backend, _requested = "numba", name
     _note = (f"numba {_nb['version']} (numpy's float32 matrix product {'fused' if _fused else 'unfused'}"
              + ("" if _probe_exact else ", not reproduced exactly: a point at a band edge may count differently") + ")")
@@ -110,7 +121,7 @@ _KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "
 
 
 def _load() -> None:
-    """Import numba and wrap the kernels; they compile (or load from the cache) at their first call."""
+    """Import numba and wrap the kernels (:func:`_compile_once` compiles them)."""
     global _fused
     import numba  # (each time: a test may hide it)
 
@@ -127,16 +138,31 @@ def _load() -> None:
     _nb["version"] = numba.__version__
 
 
+def _compile_once() -> None:
+    """Compile every kernel, or load it from numba's cache, before the backend says numba: with
+    the cache lock held, so that no other process of ours writes the cache meanwhile (see
+    :mod:`robot.base.kernel_cache`), and before any thread can call a kernel and compile it
+    without the lock."""
+    global _compiled
+    if _compiled:
+        return
+    with cache_lock():
+        _run_each_kernel()
+    _compiled = True
+
+
 def warm_up() -> float:
-    """Compile the kernels, or load them from numba's cache, on tiny inputs of the types the fit
-    passes. Returns the seconds it took (0 with the numpy backend). If compiling fails, "auto"
+    """Resolve the backend and, with numba, compile the kernels or load them from numba's cache
+    (the first :func:`backend` call does that), then run each once on tiny inputs of the types the
+    fit passes. Returns the seconds it took (0 with the numpy backend). If compiling fails, "auto"
     falls back to numpy (:func:`backend_note` says why) and "numba" raises."""
     global _backend, _note
+    t0 = time.perf_counter()
     if backend() != "numba":
         return 0.0
-    t0 = time.perf_counter()
     try:
-        _run_each_kernel()
+        with cache_lock():
+            _run_each_kernel()
     except Exception as e:
         if _requested == "numba":
             raise

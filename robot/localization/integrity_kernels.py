@@ -45,6 +45,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from robot.base.kernel_cache import cache_lock
 from robot.localization import fit_kernels
 
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher
@@ -85,7 +86,8 @@ def warm_up() -> float:
             return time.perf_counter() - t0
         try:
             kernels = _load()
-            _run_each_kernel(kernels)
+            with cache_lock():  # no other process of ours writes numba's cache meanwhile
+                _run_each_kernel(kernels)
             _nb.update(kernels)
         except Exception as e:
             _failed = f"the integrity kernels did not compile: {type(e).__name__}: {e}".split("\n")[0]
