@@ -22,7 +22,7 @@ SEED = 20240601
 
 @pytest.fixture(scope="module")
 def sample():
-    return bench_integrity.run(SCENES, SEED)
+    return bench_integrity.run(SCENES, SEED, fused_every=4)
 
 
 def test_no_result_is_misleading(sample):
@@ -53,3 +53,13 @@ def test_the_covariance_is_honest_on_average(sample):
     assert 1.0 < s["nees_mean"] < 5.0, s
     assert s["status"]["ok"] + s["status"]["unprotected"] >= SCENES // 2
     assert not math.isnan(s["err_h_median_mm"]) and s["err_h_median_mm"] < 50.0
+
+
+def test_the_fused_pose_is_never_misleading_standing_still_from_the_same_scenes(sample):
+    """Every 4th scene again through the controller core: the fused pose's protection levels bound
+    its error at every frame, and 'localized' is never more than 50 mm off. A wrong wall taken
+    from a cold start stays in the fused pose, and so must its bound."""
+    f = sample["fused"]
+    assert f["scenes"] == SCENES // 4 and f["ticks"] == f["scenes"] * bench_integrity.FUSED_FRAMES
+    assert f["misleading"] == 0, [r["fused"] for r in sample["rows"] if r.get("fused")]
+    assert f["localized_gt_50mm"] == 0

@@ -250,22 +250,31 @@ class RefChecker:
         sol = self.solve(members)
         cov = sol.covariance(self.coarse_cov)
         status = "ok" if sol.fully_observed else "degenerate"
-        hpl, vpl, sep_h, sep_v = self.protection(members, sol, cov)
+        hpl, vpl, sep_h, sep_v, prior_h, prior_v, bounded = self.protection(members, sol, cov)
         sys_cov = sol.A @ self.stack.R_sys @ sol.A.T if members else None
-        return Integrity(status, sol, cov, excluded, "", hpl, vpl, sol.chi2, sol.dof, sys_cov, sep_h, sep_v)
+        return Integrity(status, sol, cov, excluded, "", hpl, vpl, sol.chi2, sol.dof, sys_cov, sep_h, sep_v, prior_h,
+                         prior_v, bounded)
 
     def protection(self, members, sol, cov):
         k2 = math.sqrt(-2.0 * math.log(self.risk))
         k1 = integ.normal_quantile(self.risk / 2.0)
-        subs = self.without(members, self.faults(members))
+        faults = self.faults(members)
+        subs = self.without(members, faults)
         sep = np.array([np.zeros(3)] + [_ref_separation(sol.x - sub.x) for sub in subs])
         C = np.array([sol.covariance(self.coarse_cov, 0.0)] + [sub.covariance(self.coarse_cov, 0.0) for sub in subs])
         a, b, c = C[:, 0, 0], 0.5 * (C[:, 0, 1] + C[:, 1, 0]), C[:, 1, 1]
         lam = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)
         hpl = np.hypot(sep[:, 0], sep[:, 1]) + k2 * np.sqrt(np.maximum(lam, 0.0))
         vpl = np.abs(sep[:, 2]) + k1 * np.sqrt(np.maximum(C[:, 2, 2], 0.0))
+        hyps = [sol] + list(subs)
+        walls = [()] + [tuple(sorted({self.stack.obs[j].plane_id for j in f})) for f in faults]
+        leans = np.array([h.V_unobs.shape[1] > 0 for h in hyps])
+        bounded = [(w, [list(u) if u[np.argmax(np.abs(u))] > 0 else list(-u) for u in h.V_unobs.T], float(hpl[i]),
+                    float(vpl[i]))
+                   for i, (h, w) in enumerate(zip(hyps, walls)) if leans[i]]
         return (float(hpl.max()), float(vpl.max()), float(np.hypot(sep[:, 0], sep[:, 1]).max()),
-                float(np.abs(sep[:, 2]).max()))
+                float(np.abs(sep[:, 2]).max()), float(hpl[leans].max(initial=0.0)), float(vpl[leans].max(initial=0.0)),
+                bounded)
 
 
 # -- comparisons ------------------------------------------------------------------------------------
@@ -319,7 +328,8 @@ def same_integrity(a: Integrity, b: Integrity, what: str) -> None:
     assert (a.status, a.excluded, a.reason, a.dof) == (b.status, b.excluded, b.reason, b.dof), what
     same_solution(a.solution, b.solution, what + " solution")
     close(a.cov, b.cov, what + " cov")
-    for name in ("horizontal_pl", "heading_pl", "chi2", "separation_h", "separation_heading"):
+    for name in ("horizontal_pl", "heading_pl", "chi2", "separation_h", "separation_heading", "prior_bound_h",
+                 "prior_bound_heading"):
         close(getattr(a, name), getattr(b, name), f"{what} {name}", max(abs(getattr(b, name)), 1e-6))
     assert (a.systematic_cov is None) == (b.systematic_cov is None), what
     if b.systematic_cov is not None:

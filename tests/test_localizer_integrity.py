@@ -343,3 +343,61 @@ def test_a_map_plane_carries_its_as_built_tolerance():
     tight = Localizer(ROBOT, ARENA).localize(fr, FACING_WEST, coarse_covariance(0.02, 0.02))
     wide = Localizer(ROBOT, loose).localize(fr, FACING_WEST, coarse_covariance(0.02, 0.02))
     assert math.sqrt(wide.cov[0, 0]) > 2 * math.sqrt(tight.cov[0, 0])
+
+
+# -- the fused pose: a wrong wall's bound outlives the prior it was taken from --------------------
+
+def localized(walls, directions, h, heading):
+    """A localization result that carries only the integrity fields the fusion reads."""
+    hyp = {"walls": list(walls), "directions": directions, "horizontal_m": h, "heading_rad": heading}
+    return dataclasses.make_dataclass("R", [("integrity", dict), ("systematic_cov", object), ("risk", float)])(
+        {"separation_m": 0.0, "separation_rad": 0.0, "prior_bounded": [hyp]}, None, 1e-3)
+
+
+def test_a_wrong_wall_bound_is_carried_until_other_walls_observe_what_it_left_unobserved():
+    """Leaving wall_north out leaves y to the prior. On a wide prior that bound is 0.4 m; once the
+    filter's own pose (built on wall_north) is the prior, the same hypothesis comes back bounded by
+    a few millimetres: the fused pose keeps the 0.4 m until another wall facing y is fused."""
+    north = {"wall_north": (0.0, -1.0)}
+    first = FusedProtection.from_localization(localized(["wall_north"], [[0.0, 1.0, 0.0]], 0.4, 0.01), None, north)
+    assert first.prior_bound_h == pytest.approx(0.4)
+    again = FusedProtection.from_localization(localized(["wall_north"], [[0.0, 1.0, 0.0]], 0.004, 0.001), first,
+                                              {**north, "wall_east": (-1.0, 0.0)})  # east faces x: y stays open
+    assert again.prior_bound_h == pytest.approx(0.4)
+    assert again.levels(np.diag([1e-6, 1e-6, 1e-8]))[0] >= 0.4
+    lifted = FusedProtection.from_localization(localized(["wall_north"], [[0.0, 1.0, 0.0]], 0.004, 0.001), again,
+                                               {**north, "wall_east": (-1.0, 0.0), "wall_south": (0.0, 1.0)})
+    assert lifted.prior_bound_h == 0.0 and lifted.open_faults == ()
+    # A hypothesis without a wrong wall is the filter's own business (its covariance keeps what is unobserved).
+    none = FusedProtection.from_localization(localized([], [[0.0, 1.0, 0.0]], 0.3, 0.01), None, north)
+    assert none.prior_bound_h == 0.0
+
+
+def test_a_panel_hiding_a_wall_from_a_cold_start_never_makes_the_fused_pose_confidently_wrong():
+    """The robot stands still from a cold start (0.1 m, 10 deg); a panel 0.26 m in front of
+    wall_east covers all the front camera sees of it (site scene, realistic camera). The first
+    localization takes the panel for the wall, rightly unprotected; later ones, on the filter's
+    pose, find the panel where they expect the wall. The fused pose is as wrong as the first fix,
+    and its protection level must keep saying so, every frame: never above the error, never
+    'localized' with it."""
+    truth, coarse = (0.638, 0.529, 0.169), (0.673, 0.714, 0.309)
+    panel = parallel_panel(ARENA["wall_east"], 0.26, 1.0, None, region=(0.038, 1.170))
+    scene = SimScene(ARENA, [panel])
+    noise = DepthNoise.realistic(scale_error={"front": -0.0018, "left": 0.0056}, unit_seed=123)
+    core = ControllerCore(ROBOT, vision=True, t_start=0.0, plane_map=ARENA)
+    core.set_pose(0.0, *coarse, coarse_covariance(0.1, math.radians(10.0)))
+    loc = Localizer(ROBOT, ARENA)
+    rng = np.random.default_rng(966)
+    errors = []
+    for k in range(12):
+        t = 0.2 * (k + 1)
+        shots = [render_depth_frame(ROBOT, scene, c, truth, rng=rng, noise=noise, frame_number=k) for c in ("front", "left")]
+        pose, cov = core.coarse_pose(t)
+        core.on_localization(loc.localize(shots, pose, cov), t)
+        (x, y, _), _ = core.pose(t)
+        q = core.evaluate_quality(t)
+        err = math.hypot(x - truth[0], y - truth[1])
+        errors.append(err)
+        assert err <= q.horizontal_pl, (k, err, q.horizontal_pl)
+        assert not (q.state == LOCALIZED and err > 0.05), (k, err, q)
+    assert max(errors) > 0.15  # the scene does what it is meant to: the panel pulled the pose

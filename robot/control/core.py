@@ -147,6 +147,7 @@ class ControllerCore:
         self._last_quality: Optional[QualityReport] = None
         # What the last accepted localization adds to the fused pose's protection levels.
         self._protection: Optional[FusedProtection] = None
+        self._fused_walls: Dict[str, Tuple[float, float]] = {}  # map wall -> ground normal (x, y), accepted since
         # Operator entry points (go, extend, pause, speed limit): plans waiting for the current one
         # to end, a pause that also holds plans started later, a limit at or below control.max_speed.
         self._queued: List[PathPlan] = []
@@ -162,6 +163,7 @@ class ControllerCore:
         self.filter.set_pose(t, x, y, phi, cov)
         self.quality.note_fix(t)
         self._protection = None  # the pose set comes with its own covariance
+        self._fused_walls = {}
         self.health.localization_succeeded(t)
         self._t_last_odom = t
         self._odometry.reset()
@@ -262,7 +264,11 @@ class ControllerCore:
             self.counters["planes_rejected"] += len(report.rejected)
             if report.accepted:
                 self.health.localization_succeeded(t_capture)
-                self._protection = FusedProtection.from_localization(raw)
+                accepted = set(report.accepted)
+                for meas in result.measurements:
+                    if meas.plane_id in accepted:
+                        self._fused_walls[meas.plane_id] = (float(meas.n_ground[0]), float(meas.n_ground[1]))
+                self._protection = FusedProtection.from_localization(raw, self._protection, self._fused_walls)
                 self._last_fix = max(self._last_fix, t_capture)
                 self.health.note_accepted(t_capture, len(report.accepted))
             self._note_recovery(result, t_capture, len(report.accepted))

@@ -21,7 +21,15 @@ Protection levels of the fused pose (:class:`FusedProtection`, docs/localization
 bounds k sigma of the filter's covariance plus what the filter cannot average away, the
 systematic part of the last accepted localization's covariance (depth scale, mounts, walls as
 built are the same in every frame), plus the largest separation between that localization and
-its leave-one-out solutions (how far one wrong wall could have moved it unseen).
+its leave-one-out solutions (how far one wrong wall could have moved it unseen); and never
+under the bound of a wrong-wall hypothesis that only a prior bounded. A wall whose leaving out
+leaves a direction unobserved (a panel hiding the only wall across that direction) is bounded
+there by the prior alone: when the wall is first fused, by the pose as it was then (given to
+the robot, or the filter's before the wall); afterwards by the filter's pose, which that wall
+built, and which then bounds nothing: recomputed on it, the bound shrinks to nothing while the
+error stays. So each such hypothesis keeps the largest bound it had, until walls fused since the
+pose was given, other than its own, observe every direction it left unobserved (had the wall
+been wrong, they would have disagreed with it).
 
 The position reason names the poorly known direction, so a corridor (parallel walls only) says
 which way the position is unobservable instead of inventing it (docs/architecture.md, 'Pose solver'). To stop
@@ -35,7 +43,7 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass
-from typing import Deque, Dict, List, Optional, Tuple
+from typing import Deque, Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -74,12 +82,44 @@ class FusedProtection:
     separation_h: float = 0.0  # m: its largest all-in to leave-one-out separation, horizontal
     separation_heading: float = 0.0  # rad
     risk: float = DEFAULT_RISK
+    # Wrong-wall hypotheses that only a prior bounded, carried (module docstring): each (the walls
+    # it takes for wrong, its horizontal bound m, its heading bound rad, the directions in (x, y,
+    # phi) it left unobserved), with the largest bounds it had since it first appeared.
+    open_faults: Tuple[Tuple[Tuple[str, ...], float, float, Tuple[Tuple[float, float, float], ...]], ...] = ()
+    prior_bound_h: float = 0.0  # m: the largest horizontal bound among them that walls do not yet cover
+    prior_bound_heading: float = 0.0  # rad: ... heading
 
     @classmethod
-    def from_localization(cls, result) -> FusedProtection:
+    def from_localization(cls, result, previous: Optional[FusedProtection] = None,
+                          fused_walls: Optional[Mapping[str, Tuple[float, float]]] = None) -> FusedProtection:
+        """What ``result`` (an accepted localization) adds to the fused pose. ``previous``: the
+        protection before it (None: the pose was just given); ``fused_walls``: the map walls the
+        filter accepted since the pose was given, this localization's included, each with its
+        normal in the ground frame (x, y)."""
         info = getattr(result, "integrity", {}) or {}
+        faults: Dict[Tuple[str, ...], Tuple[float, float, Tuple[Tuple[float, float, float], ...]]] = {}
+        for walls, h, heading, dirs in (previous.open_faults if previous is not None else ()):
+            faults[walls] = (h, heading, dirs)
+        for hyp in info.get("prior_bounded") or ():
+            walls = tuple(hyp.get("walls") or ())
+            if not walls:  # no wall wrong: the filter's covariance keeps what is unobserved
+                continue
+            h, heading = float(hyp.get("horizontal_m") or 0.0), float(hyp.get("heading_rad") or 0.0)
+            dirs = tuple((float(u[0]), float(u[1]), float(u[2])) for u in hyp.get("directions") or ())
+            old = faults.get(walls)
+            # A bound recomputed on a prior that the wall itself built says nothing new: keep the largest.
+            faults[walls] = (h, heading, dirs) if old is None else (max(old[0], h), max(old[1], heading), dirs)
+        fused = fused_walls or {}
+        kept, bound_h, bound_heading = [], 0.0, 0.0
+        for walls, (h, heading, dirs) in faults.items():
+            open_h, open_heading = _open(walls, dirs, fused)
+            if open_h or open_heading:
+                kept.append((walls, h, heading, dirs))
+                bound_h = max(bound_h, h) if open_h else bound_h
+                bound_heading = max(bound_heading, heading) if open_heading else bound_heading
         return cls(getattr(result, "systematic_cov", None), float(info.get("separation_m") or 0.0),
-                   float(info.get("separation_rad") or 0.0), float(getattr(result, "risk", DEFAULT_RISK)))
+                   float(info.get("separation_rad") or 0.0), float(getattr(result, "risk", DEFAULT_RISK)),
+                   tuple(kept), bound_h, bound_heading)
 
     def levels(self, P: np.ndarray) -> Tuple[float, float]:
         """(horizontal m, heading rad) protection levels of a fused pose with covariance P."""
@@ -89,8 +129,28 @@ class FusedProtection:
             C = C + np.asarray(self.systematic_cov, float)
         (a, b, _), (c, d, _), (_, _, e) = C.tolist()
         lam = _largest_eigenvalue2(a, 0.5 * (b + c), d)
-        return (k_h * math.sqrt(max(lam, 0.0)) + self.separation_h,
-                k_phi * math.sqrt(max(e, 0.0)) + self.separation_heading)
+        return (max(k_h * math.sqrt(max(lam, 0.0)) + self.separation_h, self.prior_bound_h),
+                max(k_phi * math.sqrt(max(e, 0.0)) + self.separation_heading, self.prior_bound_heading))
+
+
+COVER_COS = 0.5  # a wall whose normal is within 60 deg of a direction observes it
+
+
+def _open(walls: Sequence[str], directions: Sequence[Sequence[float]],
+          fused_walls: Mapping[str, Tuple[float, float]]) -> Tuple[bool, bool]:
+    """Whether a hypothesis that takes ``walls`` for wrong still leaves (position, heading)
+    unobserved: whether some direction it left to the prior is observed by no wall fused since the
+    pose was given, other than its own: a position direction by a wall facing it within 60 deg,
+    the heading by any wall."""
+    others = [n for wall, n in fused_walls.items() if wall not in set(walls)]
+    open_h = open_heading = False
+    for ux, uy, uphi in directions:
+        norm = math.hypot(ux, uy)
+        if norm > 0.1 and not any(abs(nx * ux + ny * uy) >= COVER_COS * norm for nx, ny in others):
+            open_h = True
+        if abs(uphi) > 0.1 and not others:
+            open_heading = True
+    return open_h, open_heading
 
 
 @dataclass(frozen=True)

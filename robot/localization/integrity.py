@@ -212,6 +212,16 @@ class Integrity:
     systematic_cov: Optional[np.ndarray] = None  # (3, 3): the part of cov from the shared errors
     separation_h: float = 0.0  # m: largest horizontal separation of a leave-one-out solution from the reported one
     separation_heading: float = 0.0  # rad
+    # The largest protection level (m, rad) among the hypotheses that only the prior bounds: a
+    # wall whose leaving out leaves a direction unobserved, so that the coarse pose decides it
+    # (0: the walls bound every hypothesis by themselves). Such a bound is worth what the prior
+    # is: nothing new when the prior is the filter's own pose, built on that same wall.
+    prior_bound_h: float = 0.0
+    prior_bound_heading: float = 0.0
+    # Each such hypothesis: (the map walls it takes for wrong, sorted; the unobserved directions
+    # in (x, y, phi), unit 3-vectors; its horizontal and heading protection levels). The fusion
+    # lifts a bound where walls it fused earlier observe those directions (robot.fusion.quality).
+    prior_bounded: List[Tuple[Tuple[str, ...], List[List[float]], float, float]] = field(default_factory=list)
 
 
 _NO_COLUMNS = np.zeros((3, 0))
@@ -556,31 +566,50 @@ class Checker:
         sol = self.solve(members)
         cov = sol.covariance(self.coarse_cov)
         status = "ok" if sol.fully_observed else "degenerate"
-        hpl, vpl, sep_h, sep_v = self.protection(members, sol, cov)
+        hpl, vpl, sep_h, sep_v, prior_h, prior_v, bounded = self.protection(members, sol, cov)
         sys_cov = sol.A @ self.stack.R_sys @ sol.A.T if members else None
-        return Integrity(status, sol, cov, excluded, "", hpl, vpl, sol.chi2, sol.dof, sys_cov, sep_h, sep_v)
+        return Integrity(status, sol, cov, excluded, "", hpl, vpl, sol.chi2, sol.dof, sys_cov, sep_h, sep_v, prior_h,
+                         prior_v, bounded)
 
-    def protection(self, members: Sequence[int], sol: Solution, cov: np.ndarray) -> Tuple[float, float, float, float]:
+    def protection(self, members: Sequence[int], sol: Solution, cov: np.ndarray) -> Tuple[
+            float, float, float, float, float, float, List[Tuple[Tuple[str, ...], List[List[float]], float, float]]]:
         """(horizontal, heading) protection levels of ``sol`` at ``self.risk``: the largest bound
-        over the fault-free hypothesis and each single-fault hypothesis (:meth:`faults`); and the
-        largest separations (horizontal, heading) of those hypotheses."""
+        over the fault-free hypothesis and each single-fault hypothesis (:meth:`faults`); the
+        largest separations (horizontal, heading) of those hypotheses; the largest bounds
+        (horizontal, heading) among the hypotheses whose solution leaves a direction to the prior
+        (0 where there is none); and those hypotheses (:attr:`Integrity.prior_bounded`)."""
         k2 = math.sqrt(-2.0 * math.log(self.risk))  # P(|e| > k sqrt(lambda_max)) <= exp(-k^2 / 2) in 2-D
         k1 = normal_quantile(self.risk / 2.0)
-        hyps = [sol] + self.without(members, self.faults(members))
+        faults = self.faults(members)
+        hyps = [sol] + self.without(members, faults)
+        walls = [()] + [tuple(sorted({self.stack.obs[j].plane_id for j in f})) for f in faults]
         # A handful of hypotheses: plain floats, each operation as numpy's elementwise one.
         sep = (sol.x - np.array([h.x for h in hyps])).tolist()
         for s in sep[1:]:
             s[2] = wrap_angle(s[2])
         sep_h = np.hypot([s[0] for s in sep], [s[1] for s in sep]).tolist()
         hpl, vpl = [], []
-        for h, s, sh in zip(hyps, sep, sep_h):
+        prior_h = prior_v = 0.0
+        bounded = []
+        for h, s, sh, w in zip(hyps, sep, sep_h, walls):
             (c00, c01, _), (c10, c11, _), (_, _, c22) = _prior_covariance(h, self.coarse_cov)
             a, b, c = c00, 0.5 * (c01 + c10), c11
             # Largest eigenvalue of the 2x2 position block, in closed form.
             lam = 0.5 * (a + c) + math.sqrt(0.25 * ((a - c) * (a - c)) + b * b)
             hpl.append(sh + k2 * math.sqrt(max(lam, 0.0)))
             vpl.append(abs(s[2]) + k1 * math.sqrt(max(c22, 0.0)))
-        return _largest(hpl), _largest(vpl), _largest(sep_h), _largest([abs(s[2]) for s in sep])
+            if h.V_unobs.shape[1]:
+                prior_h, prior_v = max(prior_h, hpl[-1]), max(prior_v, vpl[-1])
+                bounded.append((w, [_signed(u) for u in h.V_unobs.T.tolist()], hpl[-1], vpl[-1]))
+        return (_largest(hpl), _largest(vpl), _largest(sep_h), _largest([abs(s[2]) for s in sep]), prior_h, prior_v,
+                bounded)
+
+
+def _signed(u: List[float]) -> List[float]:
+    """A direction with its sign fixed (its largest component positive): a basis of unobserved
+    directions is defined up to sign, which says nothing."""
+    big = max(u, key=abs)
+    return [-v for v in u] if big < 0 else list(u)
 
 
 def _prior_covariance(sol: Solution, coarse_cov: np.ndarray) -> List[List[float]]:

@@ -367,7 +367,17 @@ class Localizer:
                 "depth_against_pose": verdict.against_pose,
                 # How far one wrong wall could have moved the pose unseen (leave-one-out), m and rad.
                 "separation_m": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_h, 6),
-                "separation_rad": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_heading, 8)}
+                "separation_rad": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_heading, 8),
+                # The protection levels (m, rad) of the wrong-wall hypotheses that only the prior
+                # bounds (0: none): the fusion must not take them from its own pose's covariance.
+                "prior_bound_m": None if integ is None or verdict.status == "inconsistent" else round(integ.prior_bound_h, 6),
+                "prior_bound_rad": (None if integ is None or verdict.status == "inconsistent"
+                                    else round(integ.prior_bound_heading, 8)),
+                # ... each: the walls it takes for wrong, the directions left to the prior, its bounds.
+                "prior_bounded": ([] if integ is None or verdict.status == "inconsistent" else
+                                  [{"walls": list(w), "directions": [[round(v, 6) for v in u] for u in U],
+                                    "horizontal_m": round(h, 6), "heading_rad": round(a, 8)}
+                                   for w, U, h, a in integ.prior_bounded])}
         status = verdict.status
         if status == "ok":
             over = self._over_alert_limits(hpl, vpl)
