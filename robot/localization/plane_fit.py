@@ -425,10 +425,12 @@ def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray,
     o, W = _window(P, depth_sigma(z, params), pi_pred, params)
     behind &= o <= W
     share = float(np.count_nonzero(behind)) / m
-    # What is behind must be a surface: flying pixels where the wall's own edge meets what lies
+    # What is behind must be surfaces: flying pixels where the wall's own edge meets what lies
     # far behind it (the ROI reaches past its top or end when the pose is off) scatter between
-    # the two, and say nothing about the wall.
-    if share >= matters and not _one_surface(rx[behind], ry[behind], z[behind], params):
+    # the two, and say nothing about the wall. Behind a panel seen at a slant the wall and the
+    # next wall at the corner can share what is behind: two surfaces, neither holding half.
+    if share >= matters and not (_one_surface(rx[behind], ry[behind], z[behind], params)
+                                 or _two_surfaces(rx[behind], ry[behind], z[behind], params)):
         return 0.0
     return share
 
@@ -456,6 +458,48 @@ def _one_surface(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, params: FitParam
         if int(np.count_nonzero(keep)) < 3:
             return False
     return float(np.count_nonzero(keep)) >= 0.5 * len(z)
+
+
+TWO_SURFACES_HOLD = 0.7  # of the points: two planes holding this much are surfaces, not scatter
+TWO_SURFACES_EACH = 0.2  # ... each of them at least this much
+_TRIPLES = np.random.default_rng(20261205).random((48, 3))  # fixed draws: the same answer every frame
+
+
+def _two_surfaces(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, params: FitParams) -> bool:
+    """Whether two planes hold ``TWO_SURFACES_HOLD`` of these points together (each at least
+    ``TWO_SURFACES_EACH``): the best of a fixed set of three-point planes, then the best on what it
+    leaves. Flying pixels, strung along rays between two depths, fill no two planes."""
+    if len(z) > 300:
+        k = -(-len(z) // 300)
+        rx, ry, z = rx[::k], ry[::k], z[::k]
+    m = len(z)
+    if m < 12:
+        return False
+    A = np.vstack([rx, ry, np.ones(m)])
+    y = 1.0 / z
+    c = params.sigma_k * params.noise_subpixel / params.noise_fx_b
+    left = np.ones(m, bool)
+    held = []
+    for _ in range(2):
+        idx = np.flatnonzero(left)
+        if len(idx) < 3:
+            return False
+        best = None
+        for draw in _TRIPLES:
+            pick = idx[(draw * len(idx)).astype(np.intp)]
+            try:
+                q = np.linalg.solve(A[:, pick].T, y[pick])
+            except np.linalg.LinAlgError:
+                continue
+            yp = q @ A
+            inl = left & (np.abs(y - yp) < np.maximum(c, yp * yp * params.min_threshold))
+            if best is None or np.count_nonzero(inl) > np.count_nonzero(best):
+                best = inl
+        if best is None:
+            return False
+        held.append(int(np.count_nonzero(best)))
+        left &= ~best
+    return min(held) >= TWO_SURFACES_EACH * m and sum(held) >= TWO_SURFACES_HOLD * m
 
 
 def _window(P: np.ndarray, sigma: np.ndarray, pi_pred: np.ndarray, params: FitParams) -> Tuple[np.ndarray, np.ndarray]:
