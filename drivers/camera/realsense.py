@@ -198,6 +198,9 @@ class DeviceSource:
     def is_present(self) -> bool:
         raise NotImplementedError
 
+    def before_stop(self, device) -> None:
+        """Called just before the driver stops the pipeline of ``device`` (a camera: nothing)."""
+
     def finished(self, device) -> bool:
         """True when the stream ended for good (a recording played to its end)."""
         return False
@@ -316,6 +319,18 @@ class PlaybackFile(DeviceSource):
             return device.as_playback().current_status() == rs.playback_status.stopped
         except RuntimeError:
             return False
+
+    def before_stop(self, device) -> None:
+        """Resume a paused playback: librealsense can crash (a segfault, seen once in our suite on
+        a loaded machine) stopping the pipeline of a paused recording; stopping a playing one is
+        its ordinary path."""
+        rs = load_pyrealsense2()
+        try:
+            pb = device.as_playback()
+            if pb.current_status() == rs.playback_status.paused:
+                pb.resume()
+        except RuntimeError:
+            pass
 
 
 # --------------------------------------------------------------------------------------------
@@ -743,6 +758,7 @@ class RealSenseCamera(CameraDriver):
         if s is None:
             return
         _stop_sensor(s.motion_sensor)
+        self.source.before_stop(s.device)
         try:
             s.pipe.stop()
         except RuntimeError as e:  # already stopped, or the device vanished under it
