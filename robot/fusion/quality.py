@@ -142,7 +142,8 @@ def _open(walls: Sequence[str], directions: Sequence[Sequence[float]],
     unobserved: whether some direction it left to the prior is observed by no wall fused since the
     pose was given, other than its own: a position direction by a wall facing it within 60 deg,
     the heading by any wall."""
-    others = [n for wall, n in fused_walls.items() if wall not in set(walls)]
+    own = set(walls)
+    others = [n for wall, n in fused_walls.items() if wall not in own]
     open_h = open_heading = False
     for ux, uy, uphi in directions:
         norm = math.hypot(ux, uy)

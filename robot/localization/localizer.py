@@ -368,8 +368,9 @@ class Localizer:
                 # How far one wrong wall could have moved the pose unseen (leave-one-out), m and rad.
                 "separation_m": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_h, 6),
                 "separation_rad": None if integ is None or verdict.status == "inconsistent" else round(integ.separation_heading, 8),
-                # The protection levels (m, rad) of the wrong-wall hypotheses that only the prior
-                # bounds (0: none): the fusion must not take them from its own pose's covariance.
+                # The largest protection levels (m, rad) among the hypotheses that only the prior
+                # bounds where the walls leave a direction unobserved (0: none): a wrong-wall one's
+                # bound is worth what the prior is (robot.fusion.quality carries them).
                 "prior_bound_m": None if integ is None or verdict.status == "inconsistent" else round(integ.prior_bound_h, 6),
                 "prior_bound_rad": (None if integ is None or verdict.status == "inconsistent"
                                     else round(integ.prior_bound_heading, 8)),
