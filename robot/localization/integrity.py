@@ -582,7 +582,7 @@ class Checker:
         k1 = normal_quantile(self.risk / 2.0)
         faults = self.faults(members)
         hyps = [sol] + self.without(members, faults)
-        walls = [()] + [tuple(sorted({self.stack.obs[j].plane_id for j in f})) for f in faults]
+        obs = self.stack.obs
         # A handful of hypotheses: plain floats, each operation as numpy's elementwise one.
         sep = (sol.x - np.array([h.x for h in hyps])).tolist()
         for s in sep[1:]:
@@ -591,7 +591,7 @@ class Checker:
         hpl, vpl = [], []
         prior_h = prior_v = 0.0
         bounded = []
-        for h, s, sh, w in zip(hyps, sep, sep_h, walls):
+        for i, (h, s, sh) in enumerate(zip(hyps, sep, sep_h)):
             (c00, c01, _), (c10, c11, _), (_, _, c22) = _prior_covariance(h, self.coarse_cov)
             a, b, c = c00, 0.5 * (c01 + c10), c11
             # Largest eigenvalue of the 2x2 position block, in closed form.
@@ -600,7 +600,8 @@ class Checker:
             vpl.append(abs(s[2]) + k1 * math.sqrt(max(c22, 0.0)))
             if h.V_unobs.shape[1]:
                 prior_h, prior_v = max(prior_h, hpl[-1]), max(prior_v, vpl[-1])
-                bounded.append((w, [_signed(u) for u in h.V_unobs.T.tolist()], hpl[-1], vpl[-1]))
+                walls = tuple(sorted({obs[j].plane_id for j in faults[i - 1]})) if i else ()
+                bounded.append((walls, [_signed(u) for u in h.V_unobs.T.tolist()], hpl[-1], vpl[-1]))
         return (_largest(hpl), _largest(vpl), _largest(sep_h), _largest([abs(s[2]) for s in sep]), prior_h, prior_v,
                 bounded)
 
