@@ -435,49 +435,53 @@ def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray,
     return share
 
 
+def _thinned_system(rx: np.ndarray, ry: np.ndarray, z: np.ndarray,
+                    params: FitParams) -> Tuple[np.ndarray, np.ndarray, float]:
+    """The points evenly thinned to about 300 (enough to tell planes from scatter) as a linear
+    system in inverse depth: A (3, m) of rays, y = 1/z, and the band's floor c in inverse depth."""
+    if len(z) > 300:
+        k = -(-len(z) // 300)
+        rx, ry, z = rx[::k], ry[::k], z[::k]
+    return np.vstack([rx, ry, np.ones(len(z))]), 1.0 / z, params.sigma_k * params.noise_subpixel / params.noise_fx_b
+
+
+def _in_band(y: np.ndarray, yp: np.ndarray, c: float, params: FitParams) -> np.ndarray:
+    """Inverse depths y within the inlier band of the plane's yp (never under min_threshold in depth)."""
+    return np.abs(y - yp) < np.maximum(c, yp * yp * params.min_threshold)
+
+
 def _one_surface(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, params: FitParams) -> bool:
     """Whether a plane holds half of these points or more (least squares in inverse depth,
     trimmed to the inlier band and refitted), rather than their depths scattering."""
     if len(z) < 3:
         return False
-    if len(z) > 300:  # evenly thinned: enough to tell a plane from scatter
-        k = -(-len(z) // 300)
-        rx, ry, z = rx[::k], ry[::k], z[::k]
-    y = 1.0 / z
-    A = np.vstack([rx, ry, np.ones(len(z))])
-    c = params.sigma_k * params.noise_subpixel / params.noise_fx_b
-    keep = np.ones(len(z), bool)
+    A, y, c = _thinned_system(rx, ry, z, params)
+    keep = np.ones(len(y), bool)
     for _ in range(3):
         Ak = A[:, keep]
         try:
             q = np.linalg.solve(Ak @ Ak.T + _RIDGE, Ak @ y[keep])
         except np.linalg.LinAlgError:
             return False
-        yp = q @ A
-        keep = np.abs(y - yp) < np.maximum(c, yp * yp * params.min_threshold)
+        keep = _in_band(y, q @ A, c, params)
         if int(np.count_nonzero(keep)) < 3:
             return False
-    return float(np.count_nonzero(keep)) >= 0.5 * len(z)
+    return float(np.count_nonzero(keep)) >= 0.5 * len(y)
 
 
 TWO_SURFACES_HOLD = 0.7  # of the points: two planes holding this much are surfaces, not scatter
 TWO_SURFACES_EACH = 0.2  # ... each of them at least this much
-_TRIPLES = np.random.default_rng(20261205).random((48, 3))  # fixed draws: the same answer every frame
+TWO_SURFACES_DRAWS = 48  # three-point planes tried per surface (the hypothesis table's first columns)
 
 
 def _two_surfaces(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, params: FitParams) -> bool:
     """Whether two planes hold ``TWO_SURFACES_HOLD`` of these points together (each at least
     ``TWO_SURFACES_EACH``): the best of a fixed set of three-point planes, then the best on what it
     leaves. Flying pixels, strung along rays between two depths, fill no two planes."""
-    if len(z) > 300:
-        k = -(-len(z) // 300)
-        rx, ry, z = rx[::k], ry[::k], z[::k]
-    m = len(z)
-    if m < 12:
+    if len(z) < 12:
         return False
-    A = np.vstack([rx, ry, np.ones(m)])
-    y = 1.0 / z
-    c = params.sigma_k * params.noise_subpixel / params.noise_fx_b
+    A, y, c = _thinned_system(rx, ry, z, params)
+    m = len(y)
     left = np.ones(m, bool)
     held = []
     for _ in range(2):
@@ -485,14 +489,13 @@ def _two_surfaces(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, params: FitPara
         if len(idx) < 3:
             return False
         best = None
-        for draw in _TRIPLES:
+        for draw in _TABLE[:, :TWO_SURFACES_DRAWS].T:  # fixed draws: the same answer every frame
             pick = idx[(draw * len(idx)).astype(np.intp)]
             try:
                 q = np.linalg.solve(A[:, pick].T, y[pick])
             except np.linalg.LinAlgError:
                 continue
-            yp = q @ A
-            inl = left & (np.abs(y - yp) < np.maximum(c, yp * yp * params.min_threshold))
+            inl = left & _in_band(y, q @ A, c, params)
             if best is None or np.count_nonzero(inl) > np.count_nonzero(best):
                 best = inl
         if best is None:
