@@ -123,7 +123,11 @@ SYM_DECIMATION = 4
 
 def map_twin(plane_map, pose, hypotheses, cache: Dict) -> bool:
     """Whether a hypothesis away from the truth sees the same map as the truth (see the docstring)."""
-    scene = cache.setdefault("scene", SimScene(plane_map))
+    # The map alone: no floor (it says nothing of x, y, phi) and no backdrop (what lies beyond the
+    # map's openings is no part of it, and the relocalizer scores no pixel the map predicts nothing
+    # for). The backdrop, a box around the map's bounds, is not symmetric when the map is: twin
+    # units side by side see it at different distances through their windows.
+    scene = cache.setdefault("scene", SimScene(plane_map, floor=False, backdrop=False))
     max_range = ROBOT.localizer.max_range
 
     def depths(p):
