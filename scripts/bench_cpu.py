@@ -390,11 +390,15 @@ def localizer_steps(quick: bool) -> Dict[str, Any]:
 def kernel_load_times() -> Dict[str, Any]:
     """The plane fit's backend, and what loading its kernels costs: compiling them into an empty
     cache (a first start) and loading them from it (every later start, in a fresh process)."""
+    import atexit
+    import shutil
     import tempfile
 
     from robot.localization import fit_kernels
 
     cache = tempfile.mkdtemp(prefix="bench-numba-")
+    # The process keeps loading its kernels from this cache until it ends; then it goes.
+    atexit.register(shutil.rmtree, cache, True)
     os.environ["NUMBA_CACHE_DIR"] = cache  # before numba is imported (by backend())
     t0 = time.perf_counter()
     out: Dict[str, Any] = {"backend": fit_kernels.backend(), "note": fit_kernels.backend_note()}
