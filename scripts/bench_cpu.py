@@ -1165,10 +1165,51 @@ def controller_memory(quick: bool) -> Dict[str, Any]:
     r = controller_window(30.0, 2.0 if quick else 5.0)
     return {"backend": fit_kernels.backend(), "rss_start_mib": rss_start, "error": r.get("error"),
             "window_start_rss_mib": r.get("window_rss0", float("nan")),
-            "window_peak_rss_mib": r.get("window_hwm", float("nan")), "hwm_reset": r.get("hwm_reset", False)}
+            "window_peak_rss_mib": r.get("window_hwm", float("nan")), "hwm_reset": r.get("hwm_reset", False),
+            "note": fit_kernels.backend_note(), "numba_loaded": "numba" in sys.modules,
+            "localizations_per_s": r.get("localizations_per_s", float("nan")),
+            "localize_ms": r.get("localize_ms", float("nan"))}
 
 
-WORKERS = {"localizer": localizer_steps, "controller": controller, "memory_numpy": controller_memory}
+WORKERS = {"localizer": localizer_steps, "controller": controller, "memory_numpy": controller_memory,
+           "memory_aot": controller_memory}
+
+
+def build_aot(python: str, folder: str) -> Dict[str, Any]:
+    """``robotctl kernels build`` under ``python`` into ``folder``: the module's path and seconds."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env.pop("ROBOT_KERNEL_DIR", None)
+    cmd = [python, "-m", "robot.cli.main", "kernels", "build", "--dir", folder, "--json"]
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1500, cwd=str(ROOT))
+    except subprocess.TimeoutExpired:
+        return {"error": "robotctl kernels build timed out"}
+    if p.returncode != 0:
+        return {"error": f"robotctl kernels build failed: {(p.stderr.strip().splitlines() or ['no output'])[-1]}"}
+    return json.loads(p.stdout)
+
+
+def memory_aot(python: str, quick: bool) -> List[str]:
+    """The controller's memory with the kernels compiled ahead of time (robotctl kernels build)."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="bench-aot-") as folder:
+        built = build_aot(python, folder)
+        if built.get("error"):
+            return [f"With the kernels compiled ahead of time: _{built['error']}_", ""]
+        size_mib = os.path.getsize(built["module"]) / 2**20
+        r = run_worker(python, "memory_aot", quick, ROBOT_KERNELS="aot", ROBOT_KERNEL_DIR=folder)
+    if r.get("error"):
+        return [f"With the kernels compiled ahead of time: _{r['error']}_", ""]
+    peak = (f"peak while it works **{r['window_peak_rss_mib']:.0f} MiB** (from {r['window_start_rss_mib']:.0f} MiB at "
+            "the window's start)" if r.get("hwm_reset") else
+            "its working peak could not be separated from start-up on this kernel")
+    return [f"With the kernels compiled ahead of time (`robotctl kernels build`: {built['seconds']:.0f} s here, "
+            f"a module of {size_mib:.1f} MiB; then `ROBOT_KERNELS=aot`), "
+            f"one window at 2 x 30 Hz in a fresh process: {r['rss_start_mib']:.0f} MiB after its imports, {peak}; numba "
+            f"{'loaded' if r.get('numba_loaded') else 'not loaded'}; {r['localizations_per_s']:.0f} localizations per s, "
+            f"{r['localize_ms']:.2f} ms each (the localizer's own clock). The same compiled code as the JIT's, bit for "
+            "bit (tests/test_aot_kernels.py), without numba and LLVM in the process.", ""]
 
 
 def worker(name: str, quick: bool) -> Dict[str, Any]:
@@ -1505,6 +1546,8 @@ def run(quick: bool = False) -> str:
         lines, fit = report_controller(run_worker(python, "controller", quick))
         out += lines
         out += report_memory_numpy(run_worker(python, "memory_numpy", quick, ROBOT_KERNELS="numpy"))
+        if not quick:
+            out += memory_aot(python, quick)
         if fit is not None:
             fits.append((label, fit))
     out += ["### Nano budget", ""]

@@ -382,8 +382,9 @@ def test_environment_chooses_the_backend(monkeypatch):
     assert fk.set_backend(None) in ("numba", "numpy")  # auto
 
 
-def test_numba_asked_for_but_missing_is_a_clear_error(monkeypatch):
+def test_numba_asked_for_but_missing_is_a_clear_error(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "numba", None)  # import numba now raises ImportError
+    monkeypatch.setenv("ROBOT_KERNEL_DIR", str(tmp_path))  # and no kernels built ahead of time there
     monkeypatch.setenv(fk.ENV, "numba")
     with pytest.raises(RuntimeError) as err:
         fk.set_backend(None)
@@ -402,7 +403,8 @@ def test_warm_up_compiles_every_kernel(numba_backend):
     assert all(fk._nb[name].signatures for name in fk._KERNELS)
 
 
-def test_kernels_that_do_not_compile_fall_back_to_numpy_only_under_auto(numba_backend, monkeypatch):
+def test_kernels_that_do_not_compile_fall_back_to_numpy_only_under_auto(numba_backend, monkeypatch, tmp_path):
+    monkeypatch.setenv("ROBOT_KERNEL_DIR", str(tmp_path))  # auto would take kernels built ahead of time there
     def broken(*args):
         raise RuntimeError("no LLVM here\nsecond line")
 

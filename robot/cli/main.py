@@ -22,11 +22,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from robot.app.logs import journal_prefix, setup_logging  # noqa: E402
 from robot.base.errors import RobotError  # noqa: E402
-from robot.cli import bench, calibrate, cameras, chassis, control, localize, maps, relocalize, replay, run, sim, teleop  # noqa: E402
+from robot.cli import bench, calibrate, cameras, chassis, control, kernels, localize, maps, relocalize, replay, run, sim, teleop  # noqa: E402
 from robot.cli.common import OneLineParser  # noqa: E402
 
 # The modules that add subcommands, in the order `robotctl --help` lists them.
-COMMAND_MODULES = (localize, relocalize, maps, cameras, chassis, calibrate, sim, run, teleop, control, replay, bench)
+COMMAND_MODULES = (localize, relocalize, maps, cameras, chassis, calibrate, sim, run, teleop, control, replay, bench, kernels)
 
 
 def build_parser() -> argparse.ArgumentParser:

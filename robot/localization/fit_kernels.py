@@ -30,8 +30,12 @@ differs only for a point exactly on a band edge, and counts are the same:
 The kernels release the GIL (``nogil``), so the localization thread runs beside the event loop.
 
 Backend: the environment variable ``ROBOT_KERNELS``, read at the first :func:`backend` call:
-``auto`` (the default: numba if it imports, else numpy), ``numba`` (a RuntimeError if numba is
-missing) or ``numpy``. numba is imported only then, never by importing this module.
+``auto`` (the default: the kernels compiled ahead of time if ``robotctl kernels build`` made them
+for this source, else numba if it imports, else numpy), ``aot`` (ahead of time only: a
+RuntimeError if they are not built), ``numba`` (the JIT: a RuntimeError if numba is missing) or
+``numpy``. numba is imported only for the JIT, never by importing this module, and never with the
+kernels compiled ahead of time (:mod:`robot.base.aot_kernels`); :func:`backend` says "numba" for
+both, the same compiled code.
 
 Compiled code is cached on disk (``cache=True``) where ``NUMBA_CACHE_DIR`` says; numba reads that
 variable when it is imported, so it must be set before the first :func:`backend` or
@@ -50,18 +54,20 @@ from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from robot.base import aot_kernels
 from robot.base.kernel_cache import cache_lock
 
 if TYPE_CHECKING:  # plane_fit imports this module
     from robot.localization.plane_fit import FitParams
 
 ENV = "ROBOT_KERNELS"
-BACKENDS = ("auto", "numba", "numpy")
+BACKENDS = ("auto", "aot", "numba", "numpy")
 
 _backend: Optional[str] = None  # "numba" or "numpy" once resolved
 _requested = "auto"  # what was asked for: only "auto" falls back to numpy when compiling fails
 _note = ""  # how the backend was chosen, for the start-up log
-_nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher
+_nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher (or its ahead-of-time build)
+_aot: Optional[Dict[str, Dict[str, Any]]] = None  # the ahead-of-time kernels of every module, when in use
 _compiled = False  # whether every kernel was compiled (or loaded from the cache), under the cache lock
 _fused = True  # whether numpy's float32 matrix product chains fused multiply-adds (probed)
 _probe_exact = True  # ... and whether the kernel then rounds exactly as it does
@@ -82,9 +88,11 @@ def backend_note() -> str:
 
 
 def set_backend(name: Optional[str]) -> str:
-    """Choose the backend: "auto", "numba" or "numpy" (None: from ``ROBOT_KERNELS``, default auto).
-    Returns the one in use. Raises RuntimeError for an unknown name, or for "numba" without numba."""
-    global _backend, _note, _requested
+    """Choose the backend: "auto", "aot", "numba" or "numpy" (None: from ``ROBOT_KERNELS``, default
+    auto). Returns the one in use ("numba" for the kernels compiled ahead of time too). Raises
+    RuntimeError for an unknown name, for "numba" without numba, or for "aot" without a module
+    built for this source."""
+    global _backend, _note, _requested, _aot
     source = "argument"
     if name is None:
         name, source = os.environ.get(ENV, "auto").strip().lower() or "auto", ENV
@@ -93,6 +101,17 @@ def set_backend(name: Optional[str]) -> str:
     if name == "numpy":
         _backend, _note, _requested = "numpy", f"numpy ({source} says numpy)", name
         return _backend
+    if name in ("auto", "aot") and _use_aot():
+        _backend, _requested = "numba", name
+        _note = f"numba {_nb['version']} (numpy's float32 matrix product {'fused' if _fused else 'unfused'})"
+        return _backend
+    if name == "aot":
+        raise RuntimeError(f"{source} asks for the kernels compiled ahead of time, but {aot_kernels.why_not()}")
+    if _aot is not None:  # the JIT asked for after the ahead-of-time kernels (robotctl kernels build)
+        global _compiled
+        _aot = None
+        _nb.clear()
+        _compiled = False
     try:
         _load()
     except ImportError as e:
@@ -120,22 +139,53 @@ _KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "
             "_gather_kernel")
 
 
+def _use_aot() -> bool:
+    """Take the kernels compiled ahead of time when they are built for this source."""
+    global _aot, _fused, _compiled
+    table = aot_kernels.load()
+    if table is None or "fit" not in table:
+        return False
+    aot_kernels.set_fallbacks(table["fit"], jit_kernels)
+    _nb.clear()
+    _nb.update(table["fit"])
+    _aot = table
+    _fused = _probe_fused()
+    _compiled = True
+    return True
+
+
+def aot_table(tag: str) -> Optional[Dict[str, Any]]:
+    """The ahead-of-time kernels of module ``tag`` ("integrity", "scan") when the backend uses
+    them, else None (the module compiles its own with the JIT)."""
+    backend()
+    return None if _aot is None else _aot.get(tag)
+
+
 def _load() -> None:
     """Import numba and wrap the kernels (:func:`_compile_once` compiles them)."""
     global _fused
-    import numba  # (each time: a test may hide it)
+    import numba  # noqa: F401 (each time: a test may hide it)
 
     if _nb:
         return
     _fused = _probe_fused()
+    _nb.update(jit_kernels())
+
+
+def jit_kernels() -> Dict[str, Any]:
+    """Fresh numba dispatchers of the kernels (also what the ahead-of-time module falls back to
+    for an argument type it was not built for)."""
+    import numba
+
     numba.extending.register_jitable(_solve3)  # called from the kernels, stays plain Python here
     g = globals()
+    out: Dict[str, Any] = {"version": numba.__version__}
     for name in _KERNELS:
         try:
-            _nb[name] = numba.njit(cache=True, nogil=True, fastmath=False)(g[name])
+            out[name] = numba.njit(cache=True, nogil=True, fastmath=False)(g[name])
         except RuntimeError:  # no writable cache location: compile at every start rather than fail
-            _nb[name] = numba.njit(cache=False, nogil=True, fastmath=False)(g[name])
-    _nb["version"] = numba.__version__
+            out[name] = numba.njit(cache=False, nogil=True, fastmath=False)(g[name])
+    return out
 
 
 def _compile_once() -> None:

@@ -45,6 +45,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
+from robot.base import aot_kernels
 from robot.base.kernel_cache import cache_lock
 from robot.localization import fit_kernels
 
@@ -97,7 +98,18 @@ def warm_up() -> float:
 
 
 def _load() -> Dict[str, Any]:
-    """numba's dispatchers of the kernels (they compile, or load from the cache, at their first call)."""
+    """numba's dispatchers of the kernels (they compile, or load from the cache, at their first call),
+    or the plane fit's backend's kernels compiled ahead of time."""
+    table = fit_kernels.aot_table("integrity")
+    if table is not None:
+        aot_kernels.set_fallbacks(table, jit_kernels)
+        return dict(table)
+    return jit_kernels()
+
+
+def jit_kernels() -> Dict[str, Any]:
+    """Fresh numba dispatchers of the kernels (also what the ahead-of-time module falls back to
+    for an argument type it was not built for)."""
     import numba
 
     for fn in (_inverse, _eigh3, _rows_of, _wrap):
