@@ -190,7 +190,12 @@ def load() -> Optional[Dict[str, Dict[str, Any]]]:
     """The kernels of the module built for this source, per tag, or None (:func:`why_not` says
     why). Each module is loaded once per process."""
     global _last_path
-    path = module_path()
+    try:
+        path = module_path()
+    except OSError as e:  # a source file unreadable: no module can be matched to it
+        _last_path = f"(sources: {e})"
+        _loaded[_last_path] = (None, f"the kernels' sources cannot be read: {e}")
+        return None
     _last_path = str(path)
     if _last_path not in _loaded:
         _loaded[_last_path] = _load(path)
