@@ -1003,8 +1003,14 @@ def controller(quick: bool) -> Dict[str, Any]:
     rss_start = vm_status("VmRSS")
     plan = [(30.0, 2.5), (10.0, 2.0)] if quick else [(30.0, 5.0), (10.0, 4.0)] * 4
     # The allocation window follows the first run's CPU window: tracemalloc slows what it traces.
-    runs = [controller_window(fps, secs, (2.0 if quick else 8.0) if i == 0 else 0.0)
-            for i, (fps, secs) in enumerate(plan)]
+    # Never beside numba's kernels: they allocate through Python's raw allocator (so that
+    # tracemalloc sees it) from threads without the GIL, and tracemalloc's hook races the main
+    # thread there (CPython issues 128679 and 143143): the Python 3.11 worker died of it, in the
+    # obstacle scan's kernel while the main thread filtered a snapshot. The numpy run measures it.
+    from robot.localization import fit_kernels
+
+    alloc = (2.0 if quick else 8.0) if fit_kernels.backend() == "numpy" else 0.0
+    runs = [controller_window(fps, secs, alloc if i == 0 else 0.0) for i, (fps, secs) in enumerate(plan)]
     errors = [r["error"] for r in runs if "error" in r]
     out: Dict[str, Any] = {"rss_start_mib": rss_start, "errors": errors, "alloc": runs[0].get("alloc"),
                            # The first run's: later runs in this process inherit what earlier rigs left.
@@ -1162,8 +1168,9 @@ def controller_memory(quick: bool) -> Dict[str, Any]:
 
     _malloc_trim()
     rss_start = vm_status("VmRSS")
-    r = controller_window(30.0, 2.0 if quick else 5.0)
-    return {"backend": fit_kernels.backend(), "rss_start_mib": rss_start, "error": r.get("error"),
+    alloc = (2.0 if quick else 8.0) if fit_kernels.backend() == "numpy" else 0.0  # see controller()
+    r = controller_window(30.0, 2.0 if quick else 5.0, alloc)
+    return {"backend": fit_kernels.backend(), "rss_start_mib": rss_start, "error": r.get("error"), "alloc": r.get("alloc"),
             "window_start_rss_mib": r.get("window_rss0", float("nan")),
             "window_peak_rss_mib": r.get("window_hwm", float("nan")), "hwm_reset": r.get("hwm_reset", False),
             "note": fit_kernels.backend_note(), "numba_loaded": "numba" in sys.modules,
@@ -1357,7 +1364,9 @@ def report_controller(r: Dict[str, Any]) -> Tuple[List[str], Optional[Dict[str, 
                      "it after start-up, so the fake cameras' rendering is in it; after imports, before the first run: "
                      f"{r['rss_start_mib']:.0f} MiB).")
     if al:
-        lines.append(f"Allocations (tracemalloc over {al['frames']} localized frames at 2 x 30 Hz): "
+        where = (" in the run without the compiled kernels below (tracemalloc's raw-memory hook races numba's "
+                 "kernels, which allocate without the GIL: CPython issues 128679 and 143143)") if r.get("alloc_numpy") else ""
+        lines.append(f"Allocations (tracemalloc over {al['frames']} localized frames at 2 x 30 Hz{where}): "
                      f"{al['blocks_per_frame']:+.1f} live blocks and {al['bytes_per_frame']:+.0f} bytes per frame "
                      f"left behind (growth: {', '.join(f'{f} {c:+.1f}' for f, c in al['top'])}); peak traced memory "
                      f"{al['peak_above_mib']:.1f} MiB above the window's start. tracemalloc counts live blocks, not "
@@ -1543,9 +1552,13 @@ def run(quick: bool = False) -> str:
         if quick and python != sys.executable:
             out += ["skipped in quick mode (the same worker as above, under Python 3.8)", ""]
             continue
-        lines, fit = report_controller(run_worker(python, "controller", quick))
+        ctl = run_worker(python, "controller", quick)
+        mem = run_worker(python, "memory_numpy", quick, ROBOT_KERNELS="numpy")
+        if not ctl.get("alloc") and mem.get("alloc"):
+            ctl["alloc"], ctl["alloc_numpy"] = mem["alloc"], True
+        lines, fit = report_controller(ctl)
         out += lines
-        out += report_memory_numpy(run_worker(python, "memory_numpy", quick, ROBOT_KERNELS="numpy"))
+        out += report_memory_numpy(mem)
         if not quick:
             out += memory_aot(python, quick)
         if fit is not None:
