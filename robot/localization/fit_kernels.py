@@ -92,7 +92,7 @@ def set_backend(name: Optional[str]) -> str:
     auto). Returns the one in use ("numba" for the kernels compiled ahead of time too). Raises
     RuntimeError for an unknown name, for "numba" without numba, or for "aot" without a module
     built for this source."""
-    global _backend, _note, _requested, _aot
+    global _backend, _note, _requested, _aot, _compiled
     source = "argument"
     if name is None:
         name, source = os.environ.get(ENV, "auto").strip().lower() or "auto", ENV
@@ -108,7 +108,6 @@ def set_backend(name: Optional[str]) -> str:
     if name == "aot":
         raise RuntimeError(f"{source} asks for the kernels compiled ahead of time, but {aot_kernels.why_not()}")
     if _aot is not None:  # the JIT asked for after the ahead-of-time kernels (robotctl kernels build)
-        global _compiled
         _aot = None
         _nb.clear()
         _compiled = False
