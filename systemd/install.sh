@@ -25,7 +25,8 @@ MODULES_LOAD=/etc/modules-load.d/robot-controller.conf
 SERVICE_USER=robot
 SERVICE_GROUPS="dialout plugdev video"
 PYTHON=python3.8
-APT_PACKAGES="python3.8 python3.8-venv libusb-1.0-0 udev"
+# gcc, libc6-dev, python3.8-dev: robotctl kernels build compiles the kernels into a C extension.
+APT_PACKAGES="python3.8 python3.8-venv libusb-1.0-0 udev gcc libc6-dev python3.8-dev"
 # PyPI's version is 2.55.1.6486: "==2.55.1" matches nothing (PEP 440 pads with zeros).
 # It is the last pyrealsense2 with a cp38 manylinux2014 aarch64 wheel.
 PYREALSENSE_PIN="pyrealsense2==2.55.1.6486"
@@ -205,6 +206,20 @@ pip_install() {
     run install -D -m 0644 "$REPO/docs/robot-install.md" "$PREFIX/docs/robot-install.md"
 }
 
+build_kernels() {
+    # The compiled kernels ahead of time, where the service looks (its NUMBA_CACHE_DIR): it then
+    # runs them without numba and LLVM in the process (about 120 MiB less). Built as the service
+    # user into its state directory; named by a hash of the kernels' sources, so an update that
+    # changes them builds anew. A failed build is no failed install: the service compiles the
+    # same kernels with numba's JIT at its first start instead.
+    case ",$EXTRAS," in *,perf,*) ;; *) return 0 ;; esac
+    run install -d -o "$SERVICE_USER" -g "$SERVICE_USER" -m 0750 "$STATE_DIR" "$STATE_DIR/numba-cache"
+    if ! run runuser -u "$SERVICE_USER" -- env NUMBA_CACHE_DIR="$STATE_DIR/numba-cache" \
+            "$VENV/bin/robotctl" kernels build; then
+        warn "the kernels were not compiled ahead of time: the service compiles them with numba at its first start"
+    fi
+}
+
 install_config() {
     run install -d -m 0755 "$ETC_DIR"
     if [ -e "$ETC_DIR/robot.yaml" ]; then
@@ -289,6 +304,7 @@ do_install() {
     ensure_user
     ensure_venv
     pip_install
+    build_kernels
     install_config
     install_udev_rules
     install_unit

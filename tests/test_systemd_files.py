@@ -290,6 +290,10 @@ def test_dry_run_prints_the_install_without_root():
     assert any(a.endswith("/etc/modules-load.d/robot-controller.conf") for a in actions) \
         or "= /etc/modules-load.d/robot-controller.conf unchanged" in out
     assert "+ systemctl enable robot-controller.service" in actions
+    # the kernels compiled ahead of time, as the service user, where the service looks
+    build = [a for a in actions if a.endswith("kernels build")]
+    assert len(build) == 1 and "runuser -u robot" in build[0], actions
+    assert "NUMBA_CACHE_DIR=/var/lib/robot-controller/numba-cache" in build[0]
     assert any(a.startswith("+ useradd --system") and a.endswith(" robot") for a in actions) \
         or "= user robot exists" in out
     assert Path("/opt/robot-controller").exists() == existed, "a dry run created the install directory"
