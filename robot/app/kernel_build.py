@@ -102,8 +102,10 @@ def build(folder: Optional[Path] = None) -> Tuple[Path, float]:
             raise RuntimeError(f"{mod_name}: the kernels did not compile ({mod.backend_note()})")
         kernels: Dict[str, List] = {}
         for kernel, disp in dispatchers.items():
-            if not hasattr(disp, "nopython_signatures"):
+            if kernel == "version":
                 continue
+            if not hasattr(disp, "nopython_signatures"):  # this process already runs a built module
+                raise RuntimeError(f"{mod_name}: its kernels are not numba's here (build in a fresh process)")
             for k, sig in enumerate(disp.nopython_signatures):
                 export = f"{tag}{_SEP}{kernel.strip('_')}{_SEP}{k}"
                 cc.export(export, sig)(_forwarder(disp, len(sig.args)))
