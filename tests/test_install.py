@@ -7,6 +7,7 @@ run from an empty directory, so nothing can be found through the current directo
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -83,3 +84,17 @@ def test_visible_and_demo_work_from_a_non_editable_install(installed):
     r = _run(installed, "demo", "--json")
     assert r.returncode == 0, r.stderr
     assert '"rows"' in r.stdout
+
+
+def test_kernels_status_finds_the_installed_sources(installed):
+    """The ahead-of-time module is named by a hash of the installed kernel sources: every file it
+    hashes is in the installed package, and the module is looked for beside it by default."""
+    py, target, work = installed
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME", "NUMBA_CACHE_DIR",
+                                                             "ROBOT_KERNEL_DIR")}
+    r = subprocess.run([str(py), "-m", "robot.cli.main", "kernels", "status", "--json"], cwd=str(work),
+                       env=dict(env, ROBOT_KERNELS="numpy"), capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    status = json.loads(r.stdout)
+    assert status["backend"] == "numpy" and status["ahead_of_time_built"] is False
+    assert status["ahead_of_time_module"].startswith(str(target / "robot" / "__pycache__" / "robot_kernels_"))
