@@ -35,6 +35,8 @@ def _arg_spec(t: Any) -> aot_kernels.ArgSpec:
     from numba.core import types
 
     if isinstance(t, types.Array):
+        if t.layout not in ("C", "A"):  # the checks know C order or any strides, nothing else
+            raise TypeError(f"argument type {t}: layout {t.layout} is not supported ahead of time")
         return ("array", str(np.dtype(str(t.dtype))), t.ndim, t.layout == "C", not t.mutable)
     if isinstance(t, types.Boolean):
         return ("bool",)
@@ -68,9 +70,9 @@ def _quiet() -> Iterator[None]:
 
 
 def build(folder: Optional[Path] = None) -> Tuple[Path, float]:
-    """Compile every kernel ahead of time into ``folder`` (default ``aot_kernels.kernel_dir()``). Returns the
-    module's path and the seconds it took. Compiles the kernels with the JIT first (their
-    warm-ups call each with every argument type the product passes), then exports each
+    """Compile every kernel ahead of time into ``folder`` (default ``aot_kernels.kernel_dir()``).
+    Returns the module's path and the seconds it took. Compiles the kernels with the JIT first
+    (their warm-ups call each with every argument type the product passes), then exports each
     signature. Raises RuntimeError when numba is missing or a kernel does not compile."""
     t0 = time.perf_counter()
     try:
