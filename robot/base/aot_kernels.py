@@ -21,7 +21,8 @@ an argument type not built goes to numba's JIT where numba is installed (as the 
 compile a new variant, with a warning in the log), and is refused with a TypeError where not.
 
 What it costs: each call boxes its result arrays in C code slower than the JIT's dispatcher, and
-the type checks run in Python: about 5 % more CPU per localization (BENCHMARKS.md).
+the type checks run in Python: about 5 % more CPU per localization (interleaved runs in fresh
+processes on Python 3.8; docs/cpu-budget.md).
 """
 
 from __future__ import annotations
