@@ -1208,9 +1208,7 @@ def memory_aot(python: str, quick: bool) -> List[str]:
         r = run_worker(python, "memory_aot", quick, ROBOT_KERNELS="aot", ROBOT_KERNEL_DIR=folder)
     if r.get("error"):
         return [f"With the kernels compiled ahead of time: _{r['error']}_", ""]
-    peak = (f"peak while it works **{r['window_peak_rss_mib']:.0f} MiB** (from {r['window_start_rss_mib']:.0f} MiB at "
-            "the window's start)" if r.get("hwm_reset") else
-            "its working peak could not be separated from start-up on this kernel")
+    peak = _working_peak(r, "")
     return [f"With the kernels compiled ahead of time (`robotctl kernels build`: {built['seconds']:.0f} s here, "
             f"a module of {size_mib:.1f} MiB; then `ROBOT_KERNELS=aot`), "
             f"one window at 2 x 30 Hz in a fresh process: {r['rss_start_mib']:.0f} MiB after its imports, {peak}; numba "
@@ -1378,15 +1376,21 @@ def report_controller(r: Dict[str, Any]) -> Tuple[List[str], Optional[Dict[str, 
     return lines, fit
 
 
+def _working_peak(r: Dict[str, Any], how: str) -> str:
+    """The phrase for a memory worker's peak RSS while it works (``how``: said of the measurement)."""
+    if not r.get("hwm_reset"):
+        return "its working peak could not be separated from start-up on this kernel"
+    return (f"peak while it works **{r['window_peak_rss_mib']:.0f} MiB** (from {r['window_start_rss_mib']:.0f} MiB at "
+            f"the window's start{how})")
+
+
 def report_memory_numpy(r: Dict[str, Any]) -> List[str]:
     """The light install's memory: the same controller without numba (and LLVM) loaded."""
     if r.get("error"):
         return [f"Without the compiled kernels: _{r['error']}_", ""]
     if r.get("backend") != "numpy":
         return [f"Without the compiled kernels: _the run used {r.get('backend')}, not numpy_", ""]
-    peak = (f"peak while it works **{r['window_peak_rss_mib']:.0f} MiB** (from {r['window_start_rss_mib']:.0f} MiB at "
-            "the window's start, measured as above)" if r.get("hwm_reset") else
-            "its working peak could not be separated from start-up on this kernel")
+    peak = _working_peak(r, ", measured as above")
     return [f"Without the compiled kernels (`ROBOT_KERNELS=numpy`, no numba or LLVM loaded; the install without "
             f"the `perf` extra), one window at 2 x 30 Hz in a fresh process: {r['rss_start_mib']:.0f} MiB after "
             f"its imports (the controller's and the benchmark's), {peak}. The difference to the figure above is what numba, LLVM and the "

@@ -18,7 +18,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Any, Dict, Iterator, Optional, Sequence
 
 try:
     import fcntl
@@ -64,3 +64,16 @@ def cache_lock() -> Iterator[Optional[Path]]:
         if fd >= 0:
             fcntl.flock(fd, fcntl.LOCK_UN)
             os.close(fd)
+
+
+def jit_table(numba: Any, namespace: Dict[str, Any], names: Sequence[str], **flags: Any) -> Dict[str, Any]:
+    """numba dispatchers of the functions ``names`` in ``namespace`` (a kernel module's globals),
+    released from the GIL, fastmath off, cached on disk (beside the lock above), plus ``flags``;
+    and "version". Without a writable cache location they compile at every start rather than fail."""
+    out: Dict[str, Any] = {"version": numba.__version__}
+    for name in names:
+        try:
+            out[name] = numba.njit(cache=True, nogil=True, fastmath=False, **flags)(namespace[name])
+        except RuntimeError:
+            out[name] = numba.njit(cache=False, nogil=True, fastmath=False, **flags)(namespace[name])
+    return out

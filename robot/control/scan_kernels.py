@@ -43,8 +43,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from robot.base import aot_kernels
-from robot.base.kernel_cache import cache_lock
+from robot.base.kernel_cache import cache_lock, jit_table
 from robot.localization import fit_kernels
 
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher, once they compiled
@@ -96,11 +95,7 @@ def warm_up() -> float:
 def _load() -> Dict[str, Any]:
     """numba's dispatchers of the kernels (they compile, or load from the cache, at their first call),
     or the plane fit's backend's kernels compiled ahead of time."""
-    table = fit_kernels.aot_table("scan")
-    if table is not None:
-        aot_kernels.set_fallbacks(table, jit_kernels)
-        return dict(table)
-    return jit_kernels()
+    return fit_kernels.kernel_table("scan", jit_kernels)
 
 
 def jit_kernels() -> Dict[str, Any]:
@@ -108,14 +103,7 @@ def jit_kernels() -> Dict[str, Any]:
     for an argument type it was not built for)."""
     import numba
 
-    g = globals()
-    out: Dict[str, Any] = {"version": numba.__version__}
-    for name in _KERNELS:
-        try:
-            out[name] = numba.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")(g[name])
-        except RuntimeError:  # no writable cache location: compile at every start rather than fail
-            out[name] = numba.njit(cache=False, nogil=True, fastmath=False, error_model="numpy")(g[name])
-    return out
+    return jit_table(numba, globals(), _KERNELS, error_model="numpy")
 
 
 def _run_each_kernel() -> None:

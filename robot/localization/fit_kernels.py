@@ -50,12 +50,12 @@ from __future__ import annotations
 import math
 import os
 import time
-from typing import TYPE_CHECKING, Any, Dict, Optional, Tuple
+from typing import TYPE_CHECKING, Any, Callable, Dict, Optional, Tuple
 
 import numpy as np
 
 from robot.base import aot_kernels
-from robot.base.kernel_cache import cache_lock
+from robot.base.kernel_cache import cache_lock, jit_table
 
 if TYPE_CHECKING:  # plane_fit imports this module
     from robot.localization.plane_fit import FitParams
@@ -153,11 +153,15 @@ def _use_aot() -> bool:
     return True
 
 
-def aot_table(tag: str) -> Optional[Dict[str, Any]]:
-    """The ahead-of-time kernels of module ``tag`` ("integrity", "scan") when the backend uses
-    them, else None (the module compiles its own with the JIT)."""
+def kernel_table(tag: str, jit_kernels: Callable[[], Dict[str, Any]]) -> Dict[str, Any]:
+    """The kernels of module ``tag`` ("integrity", "scan"): built ahead of time when the backend
+    uses them (a type not built goes to ``jit_kernels``), else ``jit_kernels()``, numba's."""
     backend()
-    return None if _aot is None else _aot.get(tag)
+    table = None if _aot is None else _aot.get(tag)
+    if table is None:
+        return jit_kernels()
+    aot_kernels.set_fallbacks(table, jit_kernels)
+    return dict(table)
 
 
 def _load() -> None:
@@ -177,14 +181,7 @@ def jit_kernels() -> Dict[str, Any]:
     import numba
 
     numba.extending.register_jitable(_solve3)  # called from the kernels, stays plain Python here
-    g = globals()
-    out: Dict[str, Any] = {"version": numba.__version__}
-    for name in _KERNELS:
-        try:
-            out[name] = numba.njit(cache=True, nogil=True, fastmath=False)(g[name])
-        except RuntimeError:  # no writable cache location: compile at every start rather than fail
-            out[name] = numba.njit(cache=False, nogil=True, fastmath=False)(g[name])
-    return out
+    return jit_table(numba, globals(), _KERNELS)
 
 
 def _compile_once() -> None:

@@ -45,8 +45,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from robot.base import aot_kernels
-from robot.base.kernel_cache import cache_lock
+from robot.base.kernel_cache import cache_lock, jit_table
 from robot.localization import fit_kernels
 
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher
@@ -100,11 +99,7 @@ def warm_up() -> float:
 def _load() -> Dict[str, Any]:
     """numba's dispatchers of the kernels (they compile, or load from the cache, at their first call),
     or the plane fit's backend's kernels compiled ahead of time."""
-    table = fit_kernels.aot_table("integrity")
-    if table is not None:
-        aot_kernels.set_fallbacks(table, jit_kernels)
-        return dict(table)
-    return jit_kernels()
+    return fit_kernels.kernel_table("integrity", jit_kernels)
 
 
 def jit_kernels() -> Dict[str, Any]:
@@ -114,14 +109,7 @@ def jit_kernels() -> Dict[str, Any]:
 
     for fn in (_inverse, _eigh3, _rows_of, _wrap):
         numba.extending.register_jitable(fn)
-    g = globals()
-    out: Dict[str, Any] = {"version": numba.__version__}
-    for name in _KERNELS:
-        try:
-            out[name] = numba.njit(cache=True, nogil=True, fastmath=False)(g[name])
-        except RuntimeError:  # no writable cache location: compile at every start rather than fail
-            out[name] = numba.njit(cache=False, nogil=True, fastmath=False)(g[name])
-    return out
+    return jit_table(numba, globals(), _KERNELS)
 
 
 def _run_each_kernel(kernels: Dict[str, Any]) -> None:
