@@ -192,9 +192,14 @@ def test_no_walls_or_no_poses_agree_with_nothing(relocalizers):
 
 
 @pytest.mark.parametrize("name", MAPS)
-def test_the_verification_score_is_the_previous_code_s(relocalizers, name):
+def test_the_verification_score_is_the_previous_code_s(relocalizers, name, monkeypatch):
     """Fine and coarse scores, support, see-through share and supporting walls of the truth and of
-    poses around it, on cluttered rendered views with the realistic camera: identical."""
+    poses around it, on cluttered rendered views with the realistic camera: identical, the pixel
+    by pixel part (the one-panel credit, robot.localization.relocalize.PANEL_PRIOR, came later and
+    is off here; tests/test_relocalize.py checks it)."""
+    import robot.localization.relocalize as relocalize
+
+    monkeypatch.setattr(relocalize, "PANEL_MAX_OFFSET", 0.0)
     rel = relocalizers[name]
     rng = np.random.default_rng(11)
     for pose in free_space_poses(rel.map, 3, rng, z=0.15):

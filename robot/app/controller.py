@@ -180,12 +180,14 @@ class RobotApp:
         if self.core.abort(reason):
             log.info("%s", reason)
 
-    def set_pose(self, pose: Sequence[float], cov: np.ndarray, source: str) -> None:
-        """Reset the fused pose now (operator, fleet); recorded, so that replay resets it too."""
+    def set_pose(self, pose: Sequence[float], cov: np.ndarray, source: str, hidden_walls: Sequence[Dict] = ()) -> None:
+        """Reset the fused pose now (operator, fleet); recorded, so that replay resets it too.
+        ``hidden_walls``: what a relocalization could not exclude (ControllerCore.set_pose)."""
         t = time.monotonic()
-        self.core.set_pose(t, *pose, cov)
+        self.core.set_pose(t, *pose, cov, hidden_walls=hidden_walls)
         self.core.recovery.pose_set_by_operator(t)  # the next views must confirm it
-        self._record("status", t, functools.partial(channels.set_pose_message, t, pose[0], pose[1], pose[2], cov, source))
+        self._record("status", t, functools.partial(channels.set_pose_message, t, pose[0], pose[1], pose[2], cov, source,
+                                                    hidden_walls))
         log.info("pose set to (%.3f, %.3f, %.1f deg) by %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     def stall_control_loop(self, seconds: float) -> None:
@@ -553,9 +555,10 @@ class RobotApp:
             t_frames = max(f.t_capture for f in frames)
             if res.verdict == "unique":
                 h = res.hypotheses[0]
-                self.core.set_pose(t_frames, h.x, h.y, h.phi, np.asarray(h.cov, float))
+                self.core.set_pose(t_frames, h.x, h.y, h.phi, np.asarray(h.cov, float), hidden_walls=h.hidden_walls)
                 self._record("status", t_frames, functools.partial(channels.set_pose_message, t_frames, h.x, h.y, h.phi,
-                                                                           np.asarray(h.cov, float), "relocalization"))
+                                                                           np.asarray(h.cov, float), "relocalization",
+                                                                           h.hidden_walls))
                 log.info("relocalized at (%.3f, %.3f, %.1f deg) from %d view(s); confirming", h.x, h.y,
                          math.degrees(h.phi), len(views))
             else:

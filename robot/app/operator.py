@@ -298,7 +298,7 @@ class Operator:
                 raise CommandRefused("the robot started moving during the search: its answer is stale")
             h = res.hypotheses[0]
             floor = np.diag([s * s for s in RELOCALIZE_COV_FLOOR])
-            self.app.set_pose((h.x, h.y, h.phi), np.asarray(h.cov, float) + floor, "relocalize")
+            self.app.set_pose((h.x, h.y, h.phi), np.asarray(h.cov, float) + floor, "relocalize", h.hidden_walls)
             applied = True
         return {"verdict": res.verdict, "reason": res.reason, "applied": applied, "ms": res.ms,
                 "walls_seen": res.walls_seen, "hypotheses": [h.to_json() for h in res.hypotheses[:5]]}

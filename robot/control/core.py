@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -159,10 +159,16 @@ class ControllerCore:
 
     # -- pose -------------------------------------------------------------------------------
 
-    def set_pose(self, t: float, x: float, y: float, phi: float, cov: np.ndarray) -> None:
+    def set_pose(self, t: float, x: float, y: float, phi: float, cov: np.ndarray,
+                 hidden_walls: Sequence[Mapping] = ()) -> None:
+        """A pose given to the robot (a person, the pose store, a relocalization). ``hidden_walls``:
+        a relocalization's walls that a panel may hide ({"plane", "up_to_m", "direction"}): its pose
+        may then be that much farther from the wall, and the fused protection levels stay over
+        that until walls other than it observe the direction (FusedProtection)."""
         self.filter.set_pose(t, x, y, phi, cov)
         self.quality.note_fix(t)
-        self._protection = None  # the pose set comes with its own covariance
+        # The pose set comes with its own covariance, and with what it could not exclude.
+        self._protection = FusedProtection.from_hidden_walls(hidden_walls, cov) if hidden_walls else None
         self._fused_walls = {}
         self.health.localization_succeeded(t)
         self._t_last_odom = t

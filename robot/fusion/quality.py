@@ -121,6 +121,22 @@ class FusedProtection:
                    float(info.get("separation_rad") or 0.0), float(getattr(result, "risk", DEFAULT_RISK)),
                    tuple(kept), bound_h, bound_heading)
 
+    @classmethod
+    def from_hidden_walls(cls, hidden_walls: Sequence[Mapping], cov: np.ndarray,
+                          risk: float = DEFAULT_RISK) -> FusedProtection:
+        """The protection of a relocalized pose whose walls a panel may hide (Relocalizer): for each,
+        the pose may lie up to ``up_to_m`` farther along ``direction``, a wrong-wall hypothesis
+        that only walls other than it can close, as those of :meth:`from_localization`."""
+        k_h, _ = _multipliers(risk)
+        (a, b, _), (c, d, _), _ = np.asarray(cov, float).tolist()
+        sigma = math.sqrt(max(_largest_eigenvalue2(a, 0.5 * (b + c), d), 0.0))
+        faults = []
+        for hw in hidden_walls:
+            ux, uy = (float(v) for v in hw["direction"])
+            faults.append(((str(hw["plane"]),), float(hw["up_to_m"]) + k_h * sigma, 0.0, ((ux, uy, 0.0),)))
+        bound = max((f[1] for f in faults), default=0.0)
+        return cls(risk=risk, open_faults=tuple(faults), prior_bound_h=bound)
+
     def levels(self, P: np.ndarray) -> Tuple[float, float]:
         """(horizontal m, heading rad) protection levels of a fused pose with covariance P."""
         k_h, k_phi = _multipliers(self.risk)

@@ -706,10 +706,38 @@ def status_message(t: float, status: Mapping[str, Any]) -> Dict[str, Any]:
     return msg
 
 
-def set_pose_message(t: float, x: float, y: float, phi: float, cov: Any, source: str) -> Dict[str, Any]:
-    """``/status`` event: the pose was set (replay sets it again at this point)."""
-    return {"t": float(t), "event": "set_pose", "x": float(x), "y": float(y), "phi": float(phi),
-            "cov": _floats(cov), "source": str(source)}
+def set_pose_message(t: float, x: float, y: float, phi: float, cov: Any, source: str,
+                     hidden_walls: Sequence[Mapping[str, Any]] = ()) -> Dict[str, Any]:
+    """``/status`` event: the pose was set (replay sets it again at this point), with the walls a
+    panel may hide that a relocalized pose leaves open (``ControllerCore.set_pose``)."""
+    out = {"t": float(t), "event": "set_pose", "x": float(x), "y": float(y), "phi": float(phi),
+           "cov": _floats(cov), "source": str(source)}
+    if hidden_walls:
+        out["hidden_walls"] = [{"plane": str(h["plane"]), "up_to_m": float(h["up_to_m"]),
+                                "direction": [float(v) for v in h["direction"]]} for h in hidden_walls]
+    return out
+
+
+def hidden_walls_from_json(value: Any) -> List[Dict[str, Any]]:
+    """A set_pose event's ``hidden_walls`` checked (absent: none); ValueError names what is wrong."""
+    if value is None:
+        return []
+    if not isinstance(value, list):
+        raise ValueError(f"hidden_walls must be a list, got {type(value).__name__}")
+    out = []
+    for h in value:
+        if not isinstance(h, dict) or not isinstance(h.get("plane"), str):
+            raise ValueError(f"hidden_walls entry {h!r} has no plane id")
+        try:
+            up_to = float(h["up_to_m"])
+            ux, uy = (float(v) for v in h["direction"])
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"hidden_walls entry for {h['plane']}: up_to_m and a 2-vector direction needed") from None
+        if not (math.isfinite(up_to) and up_to >= 0.0 and math.isfinite(ux) and math.isfinite(uy)
+                and abs(math.hypot(ux, uy) - 1.0) < 1e-3):
+            raise ValueError(f"hidden_walls entry for {h['plane']}: up_to_m must be finite and >= 0, direction a unit vector")
+        out.append({"plane": h["plane"], "up_to_m": up_to, "direction": [ux, uy]})
+    return out
 
 
 def config_message(robot_config_yaml: str, map_yaml: str, robot_config_path: Optional[str] = None,

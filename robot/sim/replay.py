@@ -123,7 +123,12 @@ def replay(path, robot: Optional[RobotConfig] = None, plane_map: Optional[PlaneM
             skip -= 1
             continue
         if topic == ms.TOPIC_STATUS:
-            core.set_pose(msg["t"], msg["x"], msg["y"], msg["phi"], np.array(msg["cov"], float).reshape(3, 3))
+            try:
+                hidden = ms.hidden_walls_from_json(msg.get("hidden_walls"))
+            except ValueError as e:
+                raise InputError(f"{path}: /status set_pose at t={msg.get('t')}: {e}") from None
+            core.set_pose(msg["t"], msg["x"], msg["y"], msg["phi"], np.array(msg["cov"], float).reshape(3, 3),
+                          hidden_walls=hidden)
         elif topic == ms.TOPIC_ODOMETRY and "gyro_wz" in msg:
             core.on_gyro(msg["t"], msg["gyro_wz"], msg["variance"])
         elif topic == ms.TOPIC_ODOMETRY:
