@@ -141,7 +141,7 @@ class Hypothesis:
     # A rival of another hypothesis: that one with (wall, offset m, ux, uy) a panel standing the
     # offset in front of the wall, the robot moved that far along (ux, uy), away from the wall.
     hidden: Optional[Tuple[str, float, float, float]] = None
-    panels: List["Hypothesis"] = field(default_factory=list)  # such rivals of this one (scored)
+    panels: List[Hypothesis] = field(default_factory=list)  # such rivals of this one (scored)
     # The panels this pose cannot exclude (unique verdicts): each {"plane", "up_to_m", "direction"}.
     hidden_walls: List[Dict] = field(default_factory=list)
 
@@ -710,23 +710,29 @@ class Relocalizer:
         # margin grows with the views.
         margin = UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1)
         # A panel hiding a wall that a pose rests on is explained as well by that pose moved back
-        # from the wall: each refined hypothesis within reach is scored with those rivals, and
-        # ranked by the best of them. They are the same place, not rivals of it: what they leave
-        # open is how far along one direction (the unique answer's hidden_walls), not where.
-        for h in [h for h in hyps_out if h.refined and h.score >= hyps_out[0].score - CLEANER_REACH * margin][:PANEL_FAMILIES]:
-            h.panels = self._panel_rivals(h, scorer, coarse)
-        hyps_out.sort(key=lambda h: -h.top_score)
-        close = [h for h in hyps_out if h.top_score >= hyps_out[0].top_score - margin]
+        # from the wall: the refined hypotheses within reach are scored with those rivals. The
+        # best's own rivals are the same place, not rivals of it: what they leave open is how far
+        # along one direction (the answer's hidden_walls), not where. Another hypothesis whose
+        # rival comes within the margin of the best is a place the views do not exclude. A rival
+        # never ranks its hypothesis higher: its offset is fitted (the best of many), and a fitted
+        # offset can explain clutter (measured: a person at the lens made a wrong unique).
         best = hyps_out[0]
-        cleaner = [h for h in hyps_out[1:] if h.top_score >= best.top_score - CLEANER_REACH * margin
+        for h in [h for h in hyps_out if h.refined and h.score >= best.score - CLEANER_REACH * margin][:PANEL_FAMILIES]:
+            h.panels = self._panel_rivals(h, scorer, coarse)
+
+        def reach(h: Hypothesis) -> float:
+            return h.score if h is best else h.top_score
+
+        close = [h for h in hyps_out if reach(h) >= best.score - margin]
+        cleaner = [h for h in hyps_out[1:] if reach(h) >= best.score - CLEANER_REACH * margin
                    and h.see_through < best.see_through - CLEANER_BY and h.support >= UNIQUE_SUPPORT]
         if len(close) == 1 and cleaner:
-            return RelocalizationResult(AMBIGUOUS, _with_panels([best] + cleaner, best.top_score - margin),
-                                        f"the best hypothesis leads by {best.top_score - cleaner[0].top_score:.0f} nats, "
+            return RelocalizationResult(AMBIGUOUS, _with_panels([best] + cleaner, best.score - margin),
+                                        f"the best hypothesis leads by {best.score - reach(cleaner[0]):.0f} nats, "
                                         f"but sees through {best.see_through:.1%} of its predicted wall pixels where "
                                         f"{len(cleaner)} other(s) see through {cleaner[0].see_through:.1%}: clutter can "
                                         "make the lead, not the free space", ms, len(walls))
-        _with_panels([best], best.top_score - margin)
+        _with_panels([best], best.score - margin)
         # Unique only as the normal localizer refined it: a hypothesis whose refinement went astray
         # is a pose only the coarse score vouches for (in the benchmark, most wrong uniques were).
         if (len(close) == 1 and best.refined and best.status in FIX_STATUSES and best.support >= UNIQUE_SUPPORT
@@ -743,8 +749,8 @@ class Relocalizer:
                        f"unique allows {UNIQUE_SEE_THROUGH:.0%}): a view it does not explain")
             else:
                 why = f"best hypothesis explains only {h.support:.0%} of the wall pixels (unique needs {UNIQUE_SUPPORT:.0%})"
-            return RelocalizationResult(AMBIGUOUS, _with_panels(hyps_out, best.top_score - margin), why, ms, len(walls))
-        return RelocalizationResult(AMBIGUOUS, _with_panels(close, best.top_score - margin),
+            return RelocalizationResult(AMBIGUOUS, _with_panels(hyps_out, best.score - margin), why, ms, len(walls))
+        return RelocalizationResult(AMBIGUOUS, _with_panels(close, best.score - margin),
                                     f"{len(close)} hypotheses within {margin:.0f} nats of each other: the views "
                                     "cannot tell them apart", ms, len(walls))
 
@@ -776,16 +782,19 @@ class Relocalizer:
             along = float(u @ n)
             if abs(along) < math.sin(MIN_PAIR_ANGLE):
                 continue  # the wall does not fix that direction either
-            step = u / along  # moves the robot 1 m farther from the wall
-            def at(delta: float) -> Tuple[float, float, float]:
-                return (best.x + delta * float(step[0]), best.y + delta * float(step[1]), best.phi)
+            sx, sy = float(u[0]) / along, float(u[1]) / along  # moves the robot 1 m farther from the wall
+
+            def at(delta: float, sx: float = sx, sy: float = sy) -> Tuple[float, float, float]:
+                return (best.x + delta * sx, best.y + delta * sy, best.phi)
+
             grid = np.arange(PANEL_MIN_OFFSET * 2, PANEL_MAX_OFFSET + 1e-9, PANEL_SCAN_STEP)
             if not len(grid):
                 continue
             rough = [coarse.score(at(float(dl)), coarse=True, rels=best.rels)[0] * scale for dl in grid]
             d0 = float(grid[int(np.argmax(rough))])
             fine = []
-            for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP), d0 + 1.5 * PANEL_SCAN_STEP + 1e-9, 0.01):
+            for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
+                                min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP) + 1e-9, 0.01):
                 sc, support, planes = scorer.score(at(float(dl)), rels=best.rels)
                 fine.append((sc, float(dl), support, planes, scorer.last_see_through))
             sc, dl, support, planes, through = max(fine)
