@@ -374,6 +374,24 @@ def test_a_wrong_wall_bound_is_carried_until_other_walls_observe_what_it_left_un
     assert none.prior_bound_h == 0.0
 
 
+
+def test_a_relocalized_pose_s_hidden_wall_bound_holds_until_another_wall_observes_its_direction():
+    """A relocalization's hidden wall (a panel may stand in front of it) bounds the fused pose by
+    its offset along its direction; neither the wall itself nor a wall across that direction
+    lifts it, a wall facing along it does."""
+    from types import SimpleNamespace
+
+    P = np.diag([1e-4, 1e-4, 1e-5])
+    seed = FusedProtection.from_hidden_walls([{"plane": "w1", "up_to_m": 0.5, "direction": [1.0, 0.0]}], P)
+    assert seed.levels(P)[0] >= 0.5 + 3.0 * 0.01
+    assert FusedProtection.from_hidden_walls([], P).levels(P)[0] < 0.05
+    fix = SimpleNamespace(integrity={}, systematic_cov=None, risk=1e-3)  # an accepted localization, no faults of its own
+    kept = FusedProtection.from_localization(fix, seed, {"w1": (1.0, 0.0), "w2": (0.0, 1.0)})
+    assert kept.levels(P)[0] >= 0.5
+    lifted = FusedProtection.from_localization(fix, kept, {"w1": (1.0, 0.0), "w2": (0.0, 1.0), "w3": (-0.95, 0.3)})
+    assert lifted.levels(P)[0] < 0.05 and lifted.open_faults == ()
+
+
 def test_a_panel_hiding_a_wall_from_a_cold_start_never_makes_the_fused_pose_confidently_wrong():
     """The robot stands still from a cold start (0.1 m, 10 deg); a panel 0.26 m in front of
     wall_east covers all the front camera sees of it (site scene, realistic camera). The first

@@ -40,4 +40,7 @@ def cmd_relocalize(args) -> int:
             print(f"  {i + 1}. x={h.x:.4f} y={h.y:.4f} phi={h.phi:.4f} rad  std {sx * 1e3:.1f}/{sy * 1e3:.1f} mm "
                   f"{math.degrees(sp):.2f} deg  score {h.score:.1f}  support {h.support:.0%}  walls: "
                   + ", ".join(h.planes[:6]))
+            for hw in h.hidden_walls:  # a panel standing in front of this wall would put the robot farther along
+                print(f"     {hw['plane']} may be hidden by a panel: up to {hw['up_to_m']:.2f} m along "
+                      f"({hw['direction'][0]:.2f}, {hw['direction'][1]:.2f}), which no other wall in view fixes")
     return 1 if res.verdict == NONE else 0

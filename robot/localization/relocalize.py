@@ -21,7 +21,9 @@ correspondences rather than over poses:
    plane every pixel of a coarse grid should see and at what depth. The measured depth scores
    each pixel with a robust log-likelihood: agreement within the depth noise is good, a point in
    front of the predicted wall is clutter (a small penalty), and a point *behind* a wall the
-   candidate says is there is free-space evidence against it (a large penalty).
+   candidate says is there is free-space evidence against it (a large penalty). A surface
+   standing parallel in front of one predicted wall (a panel) is one object, not as many pieces
+   of clutter as it has pixels: its pixels score as on it, at one fixed cost (``PANEL_PRIOR``).
 5. **Refinement and verdict.** The best candidates are refined by the normal localizer and scored
    again. The verdict is ``unique`` when the best beats every other by at least
    ``UNIQUE_MARGIN`` (a log-likelihood difference, in nats, after scaling down for correlated
@@ -31,6 +33,10 @@ correspondences rather than over poses:
    went astray is not confirmed), and points just behind a predicted wall's edge, where a depth
    jump's flying pixels land, are not counted against it. A rival that sees through its walls
    less than the best is never out-scored, only out-cluttered: the verdict is then ambiguous.
+   The best hypotheses are also scored moved back from each wall that alone fixes a direction,
+   as far as a panel could stand in front of it: the best's own such rivals are its
+   ``hidden_walls`` (how far along which direction the pose may lie), another's within the
+   margin make the verdict ambiguous.
 """
 
 from __future__ import annotations
@@ -141,8 +147,9 @@ class Hypothesis:
     # A rival of another hypothesis: that one with (wall, offset m, ux, uy) a panel standing the
     # offset in front of the wall, the robot moved that far along (ux, uy), away from the wall.
     hidden: Optional[Tuple[str, float, float, float]] = None
+    free: bool = True  # (a rival) along a direction no other wall fixes
     panels: List[Hypothesis] = field(default_factory=list)  # such rivals of this one (scored)
-    # The panels this pose cannot exclude (unique verdicts): each {"plane", "up_to_m", "direction"}.
+    # The panels this pose cannot exclude (set on the answers of a verdict): each {"plane", "up_to_m", "direction"}.
     hidden_walls: List[Dict] = field(default_factory=list)
 
     @property
@@ -491,7 +498,6 @@ class _Scorer:
         self.robot, self.map, self.index, self.max_range = robot, plane_map, index, max_range
         self.items = []
         self.last_see_through = 0.0
-        self.last_panel: Optional[str] = None  # the wall the last score took for hidden by a panel
         for view, (frames, rel) in enumerate(views):
             for f in frames:
                 cam = robot.camera(f.camera)
@@ -577,11 +583,9 @@ class _Scorer:
         # stacked boards): its pixels are one object, not as many independent pieces of clutter.
         gain, explained = max(panels.values(), default=(0.0, 0))
         bonus = gain / PIXEL_CORRELATION - PANEL_PRIOR
-        self.last_panel = None
         if bonus > 0.0:
             total += gain
             agree += int(explained)
-            self.last_panel = max(panels, key=lambda k: panels[k][0])
         support = agree / scored if scored else 0.0
         self.last_see_through = through / scored if scored else 0.0
         planes = [p for p, n in sorted(seen.items(), key=lambda kv: -kv[1]) if n >= 5]
@@ -718,7 +722,7 @@ class Relocalizer:
         # offset can explain clutter (measured: a person at the lens made a wrong unique).
         best = hyps_out[0]
         for h in [h for h in hyps_out if h.refined and h.score >= best.score - CLEANER_REACH * margin][:PANEL_FAMILIES]:
-            h.panels = self._panel_rivals(h, scorer, coarse)
+            h.panels = self._panel_rivals(h, scorer, coarse, fixed=h is best)
 
         def reach(h: Hypothesis) -> float:
             return h.score if h is best else h.top_score
@@ -754,12 +758,13 @@ class Relocalizer:
                                     f"{len(close)} hypotheses within {margin:.0f} nats of each other: the views "
                                     "cannot tell them apart", ms, len(walls))
 
-    def _panel_rivals(self, best: Hypothesis, scorer: _Scorer, coarse: _Scorer) -> List[Hypothesis]:
+    def _panel_rivals(self, best: Hypothesis, scorer: _Scorer, coarse: _Scorer, fixed: bool = True) -> List[Hypothesis]:
         """The poses that explain the views as well as ``best`` does if one wall it rests on is
         hidden by a surface standing up to ``PANEL_MAX_OFFSET`` in front of it: the robot is then
-        that much farther from the wall, along the direction its other walls leave free. Scored,
-        not refined (the localizer cannot tell them apart either). A wall whose leaving out leaves
-        no direction free is no such rival: the other walls fix the pose without it."""
+        that much farther from the wall, along the direction its other walls leave free, or straight
+        away from it where they fix that direction too (such a rival is near the best only if
+        they disagree with the wall; ``fixed=False`` leaves those out). Scored, not refined (the
+        localizer cannot tell them apart either)."""
         walls = []
         for pid in best.planes:
             plane = self.map[pid]
@@ -774,14 +779,19 @@ class Relocalizer:
         scale = (COARSE_STRIDE / SCORE_STRIDE) ** 2
         for pid, n in walls:
             others = [m for q, m in walls if q != pid]
-            if any(abs(float(np.cross(a, b))) > math.sin(MIN_PAIR_ANGLE) for i, a in enumerate(others)
-                   for b in others[i + 1:]):
-                continue  # the others fix the position
-            # Free: across the others' normal (along n where there is no other wall).
-            u = n if not others else np.array([-others[0][1], others[0][0]])
+            # Free: across the others' normal (along n where there is no other wall). Where the
+            # others fix that direction too, straight away from the wall: that rival comes within
+            # the margin only if they disagree with the wall by a panel's offset (a panel in front
+            # of one of two parallel walls seen in different views of a turn).
+            u, free = n, not others
+            if others and not any(abs(float(np.cross(a, b))) > math.sin(MIN_PAIR_ANGLE)
+                                  for i, a in enumerate(others) for b in others[i + 1:]):
+                across = np.array([-others[0][1], others[0][0]])
+                if abs(float(across @ n)) >= math.sin(MIN_PAIR_ANGLE):
+                    u, free = across, True
+            if not (free or fixed):
+                continue
             along = float(u @ n)
-            if abs(along) < math.sin(MIN_PAIR_ANGLE):
-                continue  # the wall does not fix that direction either
             sx, sy = float(u[0]) / along, float(u[1]) / along  # moves the robot 1 m farther from the wall
 
             def at(delta: float, sx: float = sx, sy: float = sy) -> Tuple[float, float, float]:
@@ -800,9 +810,11 @@ class Relocalizer:
             sc, dl, support, planes, through = max(fine)
             if support >= MIN_SUPPORT:
                 x, y, phi = at(dl)
-                out.append(Hypothesis(x, y, phi, best.cov, sc, support, planes, False, "", through, best.rels,
-                                      (pid, round(dl, 3), float(u[0]) * math.copysign(1.0, along),
-                                       float(u[1]) * math.copysign(1.0, along))))
+                h = Hypothesis(x, y, phi, best.cov, sc, support, planes, False, "", through, best.rels,
+                               (pid, round(dl, 3), float(u[0]) * math.copysign(1.0, along),
+                                float(u[1]) * math.copysign(1.0, along)))
+                h.free = free
+                out.append(h)
         return out
 
     def _refine(self, views: Sequence[View], pose, scorer: _Scorer) -> Optional[Hypothesis]:
@@ -874,10 +886,13 @@ def _label_edges(label: np.ndarray) -> np.ndarray:
 
 def _with_panels(hyps: Sequence[Hypothesis], floor: float) -> List[Hypothesis]:
     """``hyps``, each with the panels it cannot exclude (its rivals that score at least ``floor``)
-    as its ``hidden_walls``: an ambiguous answer names every pose the views leave open."""
+    as its ``hidden_walls``: along a direction no other wall fixes, the panel may stand anywhere up
+    to PANEL_MAX_OFFSET; along one that other walls fix too, about where the rival put it (they
+    disagree with the wall by that much, or see it too far off to tell)."""
     for h in hyps:
-        h.hidden_walls = [{"plane": v.hidden[0], "up_to_m": PANEL_MAX_OFFSET, "direction": [v.hidden[2], v.hidden[3]]}
-                          for v in h.panels if v.score >= floor]
+        h.hidden_walls = [{"plane": v.hidden[0],
+                           "up_to_m": PANEL_MAX_OFFSET if v.free else min(PANEL_MAX_OFFSET, v.hidden[1] + PANEL_SCAN_STEP),
+                           "direction": [v.hidden[2], v.hidden[3]]} for v in h.panels if v.score >= floor]
     return list(hyps)
 
 
