@@ -84,7 +84,8 @@ CLEANER_BY = 0.005
 # that much nearer: scored pixel by pixel, the true pose lost to such a twin by hundreds of nats
 # (measured in fzk_haus_ground: unique verdicts metres off). So one hidden wall per pose is
 # scored as the one object it is: its pixels as on that surface, at the cost of this prior (nats;
-# well under UNIQUE_MARGIN, so that a pose needing a panel and one that does not stay ambiguous).
+# well under UNIQUE_MARGIN, so that a pose needing a panel and one that does not stay within
+# reach of each other; and a panel never wins a unique verdict, see ``relocalize``).
 PANEL_PRIOR = 10.0
 PANEL_MIN_OFFSET = 0.02  # m: nearer is the wall itself (as built)
 PANEL_MAX_OFFSET = 0.5  # m: what leans on or stands against a wall
@@ -162,8 +163,6 @@ class Hypothesis:
         return {"x": self.x, "y": self.y, "phi": self.phi, "cov": np.asarray(self.cov).tolist(),
                 "score": self.score, "support": self.support, "planes": list(self.planes),
                 "refined": self.refined, "status": self.status, "see_through": self.see_through,
-                **({"hidden_wall": {"plane": self.hidden[0], "offset_m": self.hidden[1],
-                                    "direction": [self.hidden[2], self.hidden[3]]}} if self.hidden else {}),
                 **({"hidden_walls": list(self.hidden_walls)} if self.hidden_walls else {})}
 
 
@@ -818,11 +817,9 @@ class Relocalizer:
             sc, dl, support, planes, through = max(fine)
             if support >= MIN_SUPPORT:
                 x, y, phi = at(dl)
-                h = Hypothesis(x, y, phi, best.cov, sc, support, planes, False, "", through, best.rels,
-                               (pid, round(dl, 3), float(u[0]) * math.copysign(1.0, along),
-                                float(u[1]) * math.copysign(1.0, along)))
-                h.free = free
-                out.append(h)
+                out.append(Hypothesis(x, y, phi, best.cov, sc, support, planes, False, "", through, best.rels,
+                                      (pid, round(dl, 3), float(u[0]) * math.copysign(1.0, along),
+                                       float(u[1]) * math.copysign(1.0, along)), free))
         return out
 
     def _refine(self, views: Sequence[View], pose, scorer: _Scorer) -> Optional[Hypothesis]:
