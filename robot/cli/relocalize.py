@@ -41,6 +41,6 @@ def cmd_relocalize(args) -> int:
                   f"{math.degrees(sp):.2f} deg  score {h.score:.1f}  support {h.support:.0%}  walls: "
                   + ", ".join(h.planes[:6]))
             for hw in h.hidden_walls:  # a panel standing in front of this wall would put the robot farther along
-                print(f"     {hw['plane']} may be hidden by a panel: up to {hw['up_to_m']:.2f} m along "
-                      f"({hw['direction'][0]:.2f}, {hw['direction'][1]:.2f}), which no other wall in view fixes")
+                print(f"     {hw['plane']} may be hidden by a panel: the robot may then be up to {hw['up_to_m']:.2f} m "
+                      f"farther along ({hw['direction'][0]:.2f}, {hw['direction'][1]:.2f})")
     return 1 if res.verdict == NONE else 0
