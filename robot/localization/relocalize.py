@@ -733,7 +733,7 @@ class Relocalizer:
         # panel may keep a place in the running, never win it. (A place a few decimetres larger
         # than the true room explains the true wall as a panel before its own; measured in
         # fzk_haus_ground with an open door and people about, a unique answer 3.3 m off.)
-        lead_from = min(best.score, best.plain_score) if math.isfinite(best.plain_score) else best.score
+        lead_from = best.plain_score if math.isfinite(best.plain_score) else best.score  # (never above its score)
         close = [h for h in hyps_out if h is best or reach(h) >= lead_from - margin]
         cleaner = [h for h in hyps_out[1:] if reach(h) >= lead_from - CLEANER_REACH * margin
                    and h.see_through < best.see_through - CLEANER_BY and h.support >= UNIQUE_SUPPORT]
