@@ -6,7 +6,13 @@ import os
 import sys
 from pathlib import Path
 
-import pytest
+# As on the robot (systemd unit, robotctl): OpenBLAS's worker threads spin on sched_yield between
+# the small matrix products this code makes, which burned most of a core in system time through
+# the suite. It must be set before numpy is first imported, which is after this point.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import pytest  # noqa: E402
 
 try:
     from hypothesis import settings
