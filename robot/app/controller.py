@@ -270,6 +270,12 @@ class RobotApp:
                 log.error("%s", self.exit_reason)
                 return False
             log.info("%s: %s; ready in %.1f s", what, kernels.backend_note(), seconds)
+        loc = self.robot.localizer
+        # What the protection levels assume of the cameras: an engineer whose robot stays degraded
+        # in a large room looks here first (docs/calibration.md, 'What a calibration file buys').
+        log.info("localizer error model: depth scale std %.2f %%, mount angle std %.2f deg%s", loc.depth_scale_std * 100,
+                 loc.mount_angle_std_deg, "" if loc.depth_scale_std < 0.005
+                 else " (an uncalibrated camera's: a calibration file of every camera lowers it)")
         return True
 
     async def _connect_chassis(self) -> bool:

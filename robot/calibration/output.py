@@ -1,5 +1,9 @@
 """From a solve to a calibration file: only what the data observed, in the config's units.
 
+The standard deviations of a depth scale and of a mount's three angles are written as data (the
+localizer's error model takes them, with a floor: ``apply_calibration``); those of the mount
+position and of the odometry go into comments.
+
 A mount is written as a whole (``xyz`` and ``rpy_deg`` are triples in the file format); its
 components the data did not observe keep the configured value, and the file says which, in a
 comment. A depth scale, a wheel radius or lx + ly that was not observed is not written at all.
@@ -35,16 +39,17 @@ def to_calibration(result: CalibrationResult, robot: RobotConfig, source: str = 
         notes: List[str] = []
         s = by_name[f"{cam.name}.depth_scale"]
         scale = s.value if s.observable else None
-        if s.observable:
-            notes.append(f"depth_scale std {_fmt_std('depth_scale', s.std)}")
-        xyz = rpy = None
+        scale_std = s.std if s.observable else None  # written as data: the error model uses it (apply_calibration)
+        xyz = rpy = rpy_std = None
         pos = [by_name[f"{cam.name}.{k}"] for k in ("x", "y", "z")]
         ang = [by_name[f"{cam.name}.{k}"] for k in ("roll", "pitch", "yaw")]
         if any(r.observable for r in pos):
             xyz = tuple(r.value if r.observable else v for r, v in zip(pos, cam.mount_xyz))
         if any(r.observable for r in ang):
             rpy = tuple(math.degrees(r.value) if r.observable else v for r, v in zip(ang, cam.mount_rpy_deg))
-        for r in pos + ang:
+        if all(r.observable for r in ang):
+            rpy_std = tuple(math.degrees(r.std) for r in ang)
+        for r in pos + (ang if rpy_std is None else []):
             kind = r.name.rsplit(".", 1)[1]
             if r.observable:
                 notes.append(f"{kind} std {_fmt_std(kind, r.std)}")
@@ -52,7 +57,7 @@ def to_calibration(result: CalibrationResult, robot: RobotConfig, source: str = 
         if held and (xyz is not None or rpy is not None):
             notes.append(f"not observed, kept as configured: {', '.join(held)}")
         if scale is not None or xyz is not None or rpy is not None:
-            cameras[cam.name] = CameraCalibration(scale, xyz, rpy)  # type: ignore[arg-type]
+            cameras[cam.name] = CameraCalibration(scale, xyz, rpy, scale_std, rpy_std)  # type: ignore[arg-type]
             comments[cam.name] = ["; ".join(notes)] if notes else []
     r = by_name["odometry.wheel_radius"]
     L = by_name["odometry.lx_plus_ly"]

@@ -21,6 +21,7 @@ from drivers.sim.world import WorldSettings
 from robot.base.errors import ConfigError
 from robot.base.files import check_writable_file
 from robot.cli.common import add_robot_map_args, float_in, int_in, load_robot_and_map, print_json
+from robot.config import load_robot_config
 from robot.control.path_file import check_path_in_bounds, load_path
 from robot.sim.runner import RunSettings
 
@@ -52,6 +53,9 @@ def register(sub) -> None:
                    help="the wheels are (1 + E) times their configured radius (default: 0)")
     p.add_argument("--online-calibration", action="store_true",
                    help="the controller estimates depth scales, mounts and wheel radii while it drives")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="calibration file the controller runs with (docs/calibration.md), instead of the config's "
+                        "`calibration:`; the simulated robot stays as configured, plus the errors given above")
     p.add_argument("--out-dir", default="sim_out", help="where the PNG figures go (default: %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     p.add_argument("--json", action="store_true", help="print the results as JSON instead of the table")
@@ -64,6 +68,11 @@ def register(sub) -> None:
 
 def cmd_sim(args) -> int:
     robot, plane_map = load_robot_and_map(args)
+    # The simulated robot is the configured one plus the errors given (what calibration has to
+    # find); the controller runs with the calibration, if any (--calibration or the config's).
+    world_robot = load_robot_config(args.robot, calibration="")
+    if args.calibration is not None:
+        robot = load_robot_config(args.robot, calibration=args.calibration)
     plan = load_path(args.path)  # a malformed path file stops here, before anything moves
     lo, hi = plane_map.bounds()
     check_path_in_bounds(plan, lo[:2], hi[:2])
@@ -95,9 +104,10 @@ def cmd_sim(args) -> int:
     if args.clutter < 0 or args.site < 0:
         raise ConfigError("--clutter and --site must not be negative")
     if args.realtime and (args.noise != "realistic" or scale_error or args.site or args.as_built or args.mount_error
-                          or args.wheel_radius_error or args.online_calibration):
-        raise ConfigError("--noise, --depth-scale-error, --site, --as-built, --mount-error, --wheel-radius-error and "
-                          "--online-calibration apply to the simulated-clock experiment, not to --realtime")
+                          or args.wheel_radius_error or args.online_calibration or args.calibration is not None):
+        raise ConfigError("--noise, --depth-scale-error, --site, --as-built, --mount-error, --wheel-radius-error, "
+                          "--online-calibration and --calibration apply to the simulated-clock experiment, not to "
+                          "--realtime")
     if args.realtime:
         from robot.sim.realtime import run_realtime
 
@@ -107,6 +117,7 @@ def cmd_sim(args) -> int:
     from robot.sim.experiment import format_table, run_experiment
 
     settings = RunSettings(vision_rate=args.vision_rate, method=args.method, online_calibration=args.online_calibration,
+                           world_robot=world_robot,
                            world=replace(WorldSettings(), decimation=args.decimation, clutter=args.clutter,
                                          depth_noise=resolve_noise(args.noise, scale_error or None), site=args.site,
                                          as_built=args.as_built, wheel_radius_error=args.wheel_radius_error,
@@ -142,7 +153,8 @@ def cmd_sim(args) -> int:
         doc["figures"] = figures
         doc["settings"] = {"vision_rate_hz": args.vision_rate, "decimation": args.decimation, "method": args.method,
                            "latency_s": settings.latency, "clutter": args.clutter, "noise": args.noise,
-                           "depth_scale_error": scale_error, "site": args.site, "as_built": args.as_built}
+                           "depth_scale_error": scale_error, "site": args.site, "as_built": args.as_built,
+                           "calibration": args.calibration}
         print_json(doc)
     else:
         print(f"Path tracking, {plan.source}: {args.runs} runs per mode, vision at {args.vision_rate:g} Hz per camera "

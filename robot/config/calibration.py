@@ -5,7 +5,9 @@ What it may hold (every key optional; ``docs/calibration.md``)::
     cameras:
       front:
         depth_scale: 0.990099          # multiplies the depth the camera reports (reads 1 % long: 1 / 1.01)
-        mount: {xyz: [0.11, 0.0175, 0.12], rpy_deg: [0.0, 0.0, 0.5]}   # replaces the robot config's mount
+        depth_scale_std: 0.0004        # its 1-sigma uncertainty (a fraction), as the calibration measured it
+        mount: {xyz: [0.11, 0.0175, 0.12], rpy_deg: [0.0, 0.0, 0.5],    # replaces the robot config's mount
+                rpy_std_deg: [0.01, 0.02, 0.01]}                       # 1-sigma of each angle, measured
     odometry:
       wheel_radius: 0.0303             # m, the effective rolling radius
       lx_plus_ly: 0.160                # m, the Mecanum L = lx + ly the turn rate is computed with
@@ -19,6 +21,13 @@ enter a ``RobotConfig``: mounts and depth scales go into the cameras' sections, 
 L into the chassis section (lx and ly scaled together, since only their sum is measured), so
 everything downstream (localizer, kinematics, filter) sees calibrated values and none of it
 knows there was a file.
+
+A calibrated camera is also a better known one. Once the file gives every camera's depth scale,
+the localizer's error model takes ``localizer.calibrated_depth_scale_std`` (0.25 %, or the
+file's ``depth_scale_std`` where that is larger) for the uncalibrated ``depth_scale_std`` (1 %);
+likewise the mount angles with ``rpy_std_deg``. The floor is there because a scale measured to
+0.04 % today is not known that well next week (temperature, knocks); the online calibration
+warns when its estimate leaves three of those standard deviations.
 
 A calibration also has to stay near the config it corrects: a radius 10 % off, or a mount
 moved by more than 0.1 m or 10 degrees, is another robot's file or a typo, not a calibration.
@@ -37,7 +46,7 @@ from robot.base.files import CALIBRATION, atomic_write_text
 from robot.base.samples import DepthFrame
 from robot.config.ranges import Range
 from robot.config.schema import Section, load_yaml_file
-from robot.config.sections import MAX_MOUNT_OFFSET
+from robot.config.sections import MAX_MOUNT_OFFSET, LocalizerConfig
 
 if TYPE_CHECKING:  # the loader imports this module: no import of it at run time
     from robot.config.loader import RobotConfig
@@ -45,6 +54,8 @@ if TYPE_CHECKING:  # the loader imports this module: no import of it at run time
 DEPTH_SCALE_RANGE = Range(0.9, 1.1, "x")  # a D435i is 0.5 to 2 % off; 10 % is a broken or foreign camera
 MOUNT_XYZ_RANGE = Range(-MAX_MOUNT_OFFSET, MAX_MOUNT_OFFSET, "m")
 MOUNT_RPY_RANGE = Range(-360.0, 360.0, "deg")
+DEPTH_SCALE_STD_RANGE = Range(0.0, 0.1, "")
+MOUNT_RPY_STD_RANGE = Range(0.0, 10.0, "deg")
 WHEEL_RADIUS_RANGE = Range(0.005, 0.5, "m")
 LX_PLUS_LY_RANGE = Range(0.02, 4.0, "m")
 # How far a calibration may move a value from the robot config it corrects.
@@ -59,6 +70,12 @@ class CameraCalibration:
     depth_scale: Optional[float] = None
     mount_xyz: Optional[Tuple[float, float, float]] = None
     mount_rpy_deg: Optional[Tuple[float, float, float]] = None
+    depth_scale_std: Optional[float] = None  # 1-sigma of depth_scale as measured (a fraction)
+    mount_rpy_std_deg: Optional[Tuple[float, float, float]] = None  # 1-sigma of each mount angle as measured
+
+    @property
+    def empty(self) -> bool:
+        return all(v is None for v in dataclasses.astuple(self))
 
 
 @dataclass(frozen=True)
@@ -75,8 +92,7 @@ class Calibration:
 
     @property
     def empty(self) -> bool:
-        return (not any(dataclasses.astuple(c) != (None, None, None) for c in self.cameras.values())
-                and self.odometry == OdometryCalibration())
+        return all(c.empty for c in self.cameras.values()) and self.odometry == OdometryCalibration()
 
 
 def _ranged_vector(sec: Section, key: str, rng: Range) -> Optional[Tuple[float, float, float]]:
@@ -99,14 +115,20 @@ def parse_calibration(data, source: str = "<calibration>") -> Calibration:
             top.fail(f"cameras: names must be non-empty strings of up to 64 characters, got {name!r}")
         sec = Section(entry, f"cameras.{name}", source)
         scale = sec.ranged("depth_scale", DEPTH_SCALE_RANGE) if sec.has("depth_scale") else None
-        xyz = rpy = None
+        scale_std = sec.ranged("depth_scale_std", DEPTH_SCALE_STD_RANGE) if sec.has("depth_scale_std") else None
+        if scale_std is not None and scale is None:
+            sec.fail("'depth_scale_std' without 'depth_scale': the uncertainty of a scale the file does not give")
+        xyz = rpy = rpy_std = None
         if sec.has("mount"):
             mount = sec.sub("mount")
             xyz = _ranged_vector(mount, "xyz", MOUNT_XYZ_RANGE)
             rpy = _ranged_vector(mount, "rpy_deg", MOUNT_RPY_RANGE)
+            rpy_std = _ranged_vector(mount, "rpy_std_deg", MOUNT_RPY_STD_RANGE)
+            if rpy_std is not None and rpy is None:
+                mount.fail("'rpy_std_deg' without 'rpy_deg': the uncertainty of angles the file does not give")
             mount.done()
         sec.done()
-        cameras[name] = CameraCalibration(scale, xyz, rpy)
+        cameras[name] = CameraCalibration(scale, xyz, rpy, scale_std, rpy_std)
     odo = top.sub("odometry")
     radius = odo.ranged("wheel_radius", WHEEL_RADIUS_RANGE) if odo.has("wheel_radius") else None
     length = odo.ranged("lx_plus_ly", LX_PLUS_LY_RANGE) if odo.has("lx_plus_ly") else None
@@ -159,6 +181,7 @@ def apply_calibration(robot: RobotConfig, cal: Optional[Calibration]) -> RobotCo
         except ConfigError as e:
             raise ConfigError(f"{cal.source}: cameras.{cam.name}: {e}") from None
     chassis = robot.chassis
+    localizer = calibrated_error_model(robot.localizer, [cal.cameras.get(name) for name in names])
     o = cal.odometry
     ch: Dict[str, float] = {}
     if o.wheel_radius is not None:
@@ -177,7 +200,23 @@ def apply_calibration(robot: RobotConfig, cal: Optional[Calibration]) -> RobotCo
             chassis = dataclasses.replace(chassis, **ch)
         except ConfigError as e:
             raise ConfigError(f"{cal.source}: odometry: {e}") from None
-    return dataclasses.replace(robot, cameras=tuple(cams), chassis=chassis)
+    return dataclasses.replace(robot, cameras=tuple(cams), chassis=chassis, localizer=localizer)
+
+
+def calibrated_error_model(localizer: LocalizerConfig, cams: List[Optional[CameraCalibration]]) -> LocalizerConfig:
+    """The localizer section with the error model of calibrated cameras (``cams``: each camera's
+    calibration, None for none): the depth scale std once every camera's scale is calibrated, the
+    mount angle std once every camera's angles are; each the configured floor for a calibrated
+    camera, or the largest std the file gives where that is larger. Otherwise as configured: one
+    camera still off by its uncalibrated 1 % is what the shared model must cover."""
+    changes: Dict[str, float] = {}
+    if cams and all(c is not None and c.depth_scale is not None for c in cams):
+        stds = [c.depth_scale_std for c in cams if c is not None and c.depth_scale_std is not None]
+        changes["depth_scale_std"] = max([localizer.calibrated_depth_scale_std] + stds)
+    if cams and all(c is not None and c.mount_rpy_deg is not None for c in cams):
+        stds = [max(c.mount_rpy_std_deg) for c in cams if c is not None and c.mount_rpy_std_deg is not None]
+        changes["mount_angle_std_deg"] = max([localizer.calibrated_mount_angle_std_deg] + stds)
+    return dataclasses.replace(localizer, **changes) if changes else localizer
 
 
 def calibrated_frame(frame: DepthFrame, depth_scale: float) -> DepthFrame:
@@ -201,7 +240,7 @@ def calibration_yaml(cal: Calibration, comments: Optional[Dict[str, List[str]]] 
     cameras' and the odometry's entries (key: camera name or ``odometry``; ``""``: the file's head)."""
     comments = comments or {}
     out = [f"# {line}" for line in comments.get("", [])]
-    cams = [(n, c) for n, c in cal.cameras.items() if dataclasses.astuple(c) != (None, None, None)]
+    cams = [(n, c) for n, c in cal.cameras.items() if not c.empty]
     if cams:
         out.append("cameras:")
         for name, c in cams:
@@ -209,11 +248,15 @@ def calibration_yaml(cal: Calibration, comments: Optional[Dict[str, List[str]]] 
             out.append(f"  {name}:")
             if c.depth_scale is not None:
                 out.append(f"    depth_scale: {_num(c.depth_scale, 7)}")
+            if c.depth_scale_std is not None:
+                out.append(f"    depth_scale_std: {_num(c.depth_scale_std, 7)}")
             parts = []
             if c.mount_xyz is not None:
                 parts.append("xyz: [" + ", ".join(_num(v, 5) for v in c.mount_xyz) + "]")
             if c.mount_rpy_deg is not None:
                 parts.append("rpy_deg: [" + ", ".join(_num(v, 4) for v in c.mount_rpy_deg) + "]")
+            if c.mount_rpy_std_deg is not None:
+                parts.append("rpy_std_deg: [" + ", ".join(_num(v, 5) for v in c.mount_rpy_std_deg) + "]")
             if parts:
                 out.append("    mount: {" + ", ".join(parts) + "}")
     o = cal.odometry

@@ -125,13 +125,21 @@ class LocalizerConfig:
     # Systematic errors (docs/localization-integrity.md): they do not average down with the number of
     # pixels, so every plane measurement, gate and protection level carries them.
     depth_scale_std: float = number(0.01, 0.0, 0.1, "", "1-sigma depth scale error of each camera (0.01: 1 %); "
-                                    "an uncalibrated D435i is 0.5 to 2 % off, lower it once depth is calibrated")
+                                    "an uncalibrated D435i is 0.5 to 2 % off (a calibration file replaces it)")
     depth_systematic_px: float = number(0.02, 0.0, 1.0, "px", "RMS of the matcher's systematic disparity error "
                                         "(low-frequency wave, subpixel non-linearity), full-resolution pixels")
     noise_correlation_px: float = number(1.5, 0.0, 50.0, "px", "correlation length (Gaussian std) of the per-pixel "
                                          "depth noise, full-resolution pixels")
     mount_position_std: float = number(0.003, 0.0, 0.1, "m", "1-sigma error of each camera mount position, per axis")
     mount_angle_std_deg: float = number(0.3, 0.0, 10.0, "deg", "1-sigma error of each camera mount angle, per axis")
+    # A calibration file (docs/calibration.md) measures the scales and mount angles: once it gives
+    # them for every camera, these (or the file's own std, where larger) replace
+    # depth_scale_std and mount_angle_std_deg.
+    calibrated_depth_scale_std: float = number(0.0025, 0.0, 0.1, "", "1-sigma depth scale error once the "
+                                               "calibration file gives every camera's scale: what temperature and "
+                                               "knocks move it by between calibrations")
+    calibrated_mount_angle_std_deg: float = number(0.05, 0.0, 10.0, "deg", "1-sigma mount angle error once the "
+                                                   "calibration file gives every camera's mount angles")
     integrity_risk: float = number(1e-3, 1e-9, 0.1, "", "probability that the error exceeds a protection level")
     false_alarm: float = number(1e-3, 1e-9, 0.1, "", "probability that walls which agree fail the consistency test")
 

@@ -450,6 +450,11 @@ class ControllerCore:
 
     # -- the control tick -------------------------------------------------------------------
 
+    @property
+    def last_quality(self) -> Optional[QualityReport]:
+        """The quality report of the last control tick (or status), None before the first."""
+        return self._last_quality
+
     def evaluate_quality(self, t: float) -> QualityReport:
         _, P = self.pose(t) if self.filter.initialized else (None, np.full((3, 3), np.inf))
         self._last_quality = self.quality.evaluate(t, P, self._protection)

@@ -14,7 +14,7 @@ import heapq
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -31,6 +31,7 @@ from robot.control.path_file import PathPlan
 from robot.control.recovery import views_from_latest
 from robot.control.trajectory import ARRIVED, DONE, TrajectoryController
 from robot.fusion.calibration_filter import CalibrationFilter
+from robot.fusion.quality import LOCALIZED
 from robot.localization.localizer import Localizer
 from robot.localization.relocalize import Relocalizer
 from robot.maps.plane_map import PlaneMap
@@ -94,6 +95,8 @@ class RunResult:
     nees: List[float]  # normalized estimation error squared of the fused pose at each trace sample
     commands: List[Tuple[float, float, float, float, bool]] = field(default_factory=list)  # per tick: t, vx, vy, wz, sent
     calibration: Optional[Dict[str, object]] = None  # the online calibration at the end: names, mean, cov, observed
+    # At each trace sample with a quality report: (t, state, horizontal protection level m, true position error m).
+    quality_trace: List[Tuple[float, str, float, float]] = field(default_factory=list)
 
     def to_json(self) -> Dict[str, object]:
         return {"vision": self.vision, "seed": self.seed, "finished": self.finished, "reason": self.reason,
@@ -102,6 +105,12 @@ class RunResult:
                              "estimate": [round(v, 5) for v in r.estimate], "error_m": round(r.error, 5),
                              "estimate_error_m": round(r.estimate_error, 5)} for r in self.targets],
                 "counters": self.counters}
+
+
+def localized_share(runs: Sequence[RunResult]) -> float:
+    """Share of all trace samples of ``runs`` at which the fused pose was ``localized`` (NaN without any)."""
+    states = [state for r in runs for _, state, _, _ in r.quality_trace]
+    return sum(1 for s in states if s == LOCALIZED) / len(states) if states else math.nan
 
 
 class DwellWatcher:
@@ -203,6 +212,7 @@ class _PathRun:
         self.truth_trace: List[Tuple[float, ...]] = []
         self.est_trace: List[Tuple[float, ...]] = []
         self.nees: List[float] = []
+        self.quality_trace: List[Tuple[float, str, float, float]] = []
         self.targets: List[TargetResult] = []
         self.localize_ms: List[float] = []
         self.render_ms: List[float] = []
@@ -243,7 +253,7 @@ class _PathRun:
                                                  "cov": cal.cov.tolist(), "observed": cal.observed().tolist()}
         return RunResult(self.settings.vision, self.settings.world.seed, self.targets, self.finished, self.reason,
                          self.now_us / _US, wall_time, np.array(self.truth_trace), np.array(self.est_trace), counters,
-                         self.localize_ms, self.render_ms, self.nees, self.commands, calibration)
+                         self.localize_ms, self.render_ms, self.nees, self.commands, calibration, self.quality_trace)
 
     def _frozen_until(self, t_us: int) -> Optional[int]:
         """While the host is frozen at ``t_us``: the microsecond it runs again; else None."""
@@ -333,6 +343,9 @@ class _PathRun:
         self.truth_trace.append((t, *truth))
         self.est_trace.append((t, x, y, phi))
         e = np.array([x - truth[0], y - truth[1], wrap_angle(phi - truth[2])])
+        q = self.core.last_quality
+        if q is not None:
+            self.quality_trace.append((t, q.state, float(q.horizontal_pl), float(math.hypot(e[0], e[1]))))
         try:
             self.nees.append(float(e @ np.linalg.solve(P, e)))
         except np.linalg.LinAlgError:
