@@ -132,3 +132,12 @@ def test_robotctl_sim_runs_the_controller_with_a_file_and_refuses_bad_ones(capsy
     doc = __import__("json").loads(capsys.readouterr().out)
     assert doc["settings"]["calibration"] == str(tmp_path / "cal.yaml")
     assert doc["modes"]["vision"]["finished"] == 1 and doc["modes"]["vision"]["localized_share"] > 0.9
+
+
+def test_the_controller_says_at_start_up_which_error_model_it_runs_with():
+    from robot.app.controller import error_model_note
+
+    assert error_model_note(ROBOT.localizer) == ("localizer error model: depth scale std 1.00 %, mount angle std 0.30 deg "
+                                                 "(a calibration file of every camera's scale and mount lowers them)")
+    assert error_model_note(calibrated(CALIBRATED).localizer) == ("localizer error model: depth scale std 0.25 %, "
+                                                                  "mount angle std 0.05 deg")
