@@ -135,9 +135,29 @@ def test_robotctl_sim_runs_the_controller_with_a_file_and_refuses_bad_ones(capsy
 
 
 def test_the_controller_says_at_start_up_which_error_model_it_runs_with():
-    from robot.app.controller import error_model_note
+    from robot.config.calibration import error_model_note
 
     assert error_model_note(ROBOT.localizer) == ("localizer error model: depth scale std 1.00 %, mount angle std 0.30 deg "
                                                  "(a calibration file of every camera's scale and mount lowers them)")
     assert error_model_note(calibrated(CALIBRATED).localizer) == ("localizer error model: depth scale std 0.25 %, "
                                                                   "mount angle std 0.05 deg")
+
+
+def test_robotctl_calibrate_writes_the_stds_and_says_what_the_file_does_to_the_error_model(capsys, tmp_path):
+    """The user's flow: calibrate (here in the simulated surveyed arena, whose robot reads depth 1 %
+    long in front and 1 % short on the left), then run with the file."""
+    from robot.cli.main import main
+    from robot.config.calibration import load_calibration
+
+    out = tmp_path / "calibration.yaml"
+    assert main(["calibrate", "--sim", "--map", "config/maps/paper_arena_surveyed.yaml", "--out", str(out), "--json"]) == 0
+    doc = __import__("json").loads(capsys.readouterr().out)
+    cal = load_calibration(out)
+    stds = {p["name"]: p["std"] for p in doc["parameters"]}
+    for cam in ROBOT.cameras:
+        c = cal.cameras[cam.name]
+        assert c.depth_scale_std == pytest.approx(stds[f"{cam.name}.depth_scale"], rel=1e-3)
+        assert c.mount_rpy_std_deg is not None and max(c.mount_rpy_std_deg) < 0.05  # well under the floor
+    loc = apply_calibration(ROBOT, cal).localizer
+    assert doc["error_model"] == {"depth_scale_std": loc.depth_scale_std, "mount_angle_std_deg": loc.mount_angle_std_deg}
+    assert (loc.depth_scale_std, loc.mount_angle_std_deg) == (0.0025, 0.05)  # the floors: the solve measures less

@@ -44,8 +44,8 @@ from robot.app.pose_store import PoseStore
 from robot.base.errors import DriverError
 from robot.base.frames import FrameCheck
 from robot.base.samples import DepthFrame
-from robot.config import LocalizerConfig, RobotConfig
-from robot.config.calibration import calibrated_frame
+from robot.config import RobotConfig
+from robot.config.calibration import calibrated_frame, error_model_note
 from robot.config.dump import effective_config_dict
 from robot.control.core import ControllerCore
 from robot.control.path_file import PathPlan
@@ -707,15 +707,6 @@ class RobotApp:
                                    effective_config=effective_config_dict(self.robot, self.plane_map.source))
         self.recorder.write(channels.TOPIC_MAP, t, channels.map_message(self.plane_map, t))
         self.recorder.write(channels.TOPIC_TF_STATIC, t, channels.transforms_message(t, camera_mounts(self.robot.cameras)))
-
-
-def error_model_note(loc: LocalizerConfig) -> str:
-    """The start-up log line on the systematic errors the localizer assumes of the cameras."""
-    calibrated = (loc.depth_scale_std <= loc.calibrated_depth_scale_std
-                  and loc.mount_angle_std_deg <= loc.calibrated_mount_angle_std_deg)
-    return (f"localizer error model: depth scale std {loc.depth_scale_std * 100:.2f} %, mount angle std "
-            f"{loc.mount_angle_std_deg:.2f} deg" + ("" if calibrated else
-                                                  " (a calibration file of every camera's scale and mount lowers them)"))
 
 
 _TOPICS = {"odometry": channels.TOPIC_ODOMETRY, "planes": channels.TOPIC_PLANES, "cmd": channels.TOPIC_CMD,

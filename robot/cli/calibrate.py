@@ -180,7 +180,7 @@ def _table(result, truth) -> List[str]:
 def cmd_calibrate(args) -> int:
     from robot.calibration.output import to_calibration
     from robot.calibration.solver import calibrate, check_calibration
-    from robot.config.calibration import calibration_yaml, write_calibration
+    from robot.config.calibration import calibrated_error_model, calibration_yaml, error_model_note, write_calibration
 
     robot, plane_map = _load(args)
     out = None if args.check else check_writable_file(args.out, "--out")  # refused before the robot moves
@@ -223,6 +223,10 @@ def cmd_calibrate(args) -> int:
             write_calibration(out, calibration_yaml(cal, comments))
             doc["written"] = str(out)
             text.append(f"wrote {out} (use it with `calibration: {out}` in the robot config or --calibration)")
+            # What the file does to the protection levels (docs/calibration.md, 'What a calibration file buys').
+            loc = calibrated_error_model(robot.localizer, [cal.cameras.get(c.name) for c in robot.cameras])
+            doc["error_model"] = {"depth_scale_std": loc.depth_scale_std, "mount_angle_std_deg": loc.mount_angle_std_deg}
+            text.append(f"with it, the {error_model_note(loc)}")
         not_written = [r.name for r in result.reports if not r.observable]
         if not_written:
             text.append("not written (not observable): " + ", ".join(not_written))

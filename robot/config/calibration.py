@@ -219,6 +219,16 @@ def calibrated_error_model(localizer: LocalizerConfig, cams: List[Optional[Camer
     return dataclasses.replace(localizer, **changes) if changes else localizer
 
 
+def error_model_note(loc: LocalizerConfig) -> str:
+    """What the localizer assumes of the cameras' systematic errors: the controller logs it at start-up,
+    ``robotctl calibrate`` prints it for the file it writes."""
+    calibrated = (loc.depth_scale_std <= loc.calibrated_depth_scale_std
+                  and loc.mount_angle_std_deg <= loc.calibrated_mount_angle_std_deg)
+    return (f"localizer error model: depth scale std {loc.depth_scale_std * 100:.2f} %, mount angle std "
+            f"{loc.mount_angle_std_deg:.2f} deg" + ("" if calibrated else
+                                                  " (a calibration file of every camera's scale and mount lowers them)"))
+
+
 def calibrated_frame(frame: DepthFrame, depth_scale: float) -> DepthFrame:
     """The frame with its metres per depth unit multiplied by the camera's calibrated ``depth_scale``
     (the pixels are shared, not copied). What every shell hands the localizer."""
