@@ -777,8 +777,8 @@ class Relocalizer:
         ``enough``: a rival along a free direction that scores this much decides everything the
         verdict asks of it (it is within the margin of the best; the hidden wall's bound there is
         PANEL_MAX_OFFSET whatever its offset), so the nearest offset is tried first and the scan
-        runs only where that falls short (about four in five free rivals stop there, at one score
-        instead of some twenty)."""
+        runs only where that falls short (two free rivals in three stopped there when measured, at
+        one score instead of some twenty)."""
         walls = []
         for pid in best.planes:
             plane = self.map[pid]

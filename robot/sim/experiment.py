@@ -138,8 +138,8 @@ def format_table(exp: ExperimentResult) -> str:
                      f"{_mm(exp.growth[m])} per target")
         share = localized_share(rs)
         if math.isfinite(share):
-            # The time 'degraded' is time at reduced speed: in a large room an uncalibrated depth
-            # scale alone keeps the protection level over its alert limit (docs/calibration.md).
+            # The time 'degraded' is time at reduced speed: in a large room the uncalibrated error
+            # model keeps the protection level over its alert limit (docs/calibration.md).
             lines.append(f"{m}: localized {share:.0%} of the time (median run {np.median([r.sim_time for r in rs]):.1f} s)")
     return "\n".join(lines)
 
