@@ -20,9 +20,10 @@ from drivers.sim.render import resolve_noise
 from drivers.sim.world import WorldSettings
 from robot.base.errors import ConfigError
 from robot.base.files import check_writable_file
-from robot.cli.common import add_robot_map_args, float_in, int_in, load_robot_and_map, print_json
+from robot.cli.common import add_robot_map_args, float_in, int_in, print_json
 from robot.config import load_robot_config
 from robot.control.path_file import check_path_in_bounds, load_path
+from robot.maps.plane_map import load_plane_map
 from robot.sim.runner import RunSettings
 
 
@@ -67,12 +68,11 @@ def register(sub) -> None:
 
 
 def cmd_sim(args) -> int:
-    robot, plane_map = load_robot_and_map(args)
-    # The simulated robot is the configured one plus the errors given (what calibration has to
-    # find); the controller runs with the calibration, if any (--calibration or the config's).
+    # The controller runs with the calibration, if any (--calibration, else the config's); the
+    # simulated robot is the configured one plus the errors given (what calibration has to find).
+    robot = load_robot_config(args.robot, calibration=args.calibration)
     world_robot = load_robot_config(args.robot, calibration="")
-    if args.calibration is not None:
-        robot = load_robot_config(args.robot, calibration=args.calibration)
+    plane_map = load_plane_map(args.map)
     plan = load_path(args.path)  # a malformed path file stops here, before anything moves
     lo, hi = plane_map.bounds()
     check_path_in_bounds(plan, lo[:2], hi[:2])

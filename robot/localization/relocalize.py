@@ -815,22 +815,20 @@ class Relocalizer:
             grid = np.arange(PANEL_MIN_OFFSET * 2, PANEL_MAX_OFFSET + 1e-9, PANEL_SCAN_STEP)
             if not len(grid):
                 continue
-            if free and math.isfinite(enough):
-                dl = float(grid[0])
+            def scored(dl: float, at=at) -> Tuple[float, float, float, List[str], float]:
                 sc, support, planes = scorer.score(at(dl), rels=best.rels)
-                if sc >= enough and support >= MIN_SUPPORT:
-                    x, y, phi = at(dl)
-                    out.append(Hypothesis(x, y, phi, best.cov, sc, support, planes, False, "", scorer.last_see_through,
-                                          best.rels, (pid, round(dl, 3), ux, uy), free))
-                    continue
-            rough = [coarse.score(at(float(dl)), coarse=True, rels=best.rels)[0] * scale for dl in grid]
-            d0 = float(grid[int(np.argmax(rough))])
-            fine = []
-            for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
-                                min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP) + 1e-9, 0.01):
-                sc, support, planes = scorer.score(at(float(dl)), rels=best.rels)
-                fine.append((sc, float(dl), support, planes, scorer.last_see_through))
-            sc, dl, support, planes, through = max(fine)
+                return sc, dl, support, planes, scorer.last_see_through
+
+            first = scored(float(grid[0])) if free and math.isfinite(enough) else None
+            if first is not None and first[0] >= enough and first[2] >= MIN_SUPPORT:
+                pick = first
+            else:
+                rough = [coarse.score(at(float(dl)), coarse=True, rels=best.rels)[0] * scale for dl in grid]
+                d0 = float(grid[int(np.argmax(rough))])
+                pick = max(scored(float(dl)) for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
+                                                                   min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP)
+                                                                   + 1e-9, 0.01))
+            sc, dl, support, planes, through = pick
             if support >= MIN_SUPPORT:
                 x, y, phi = at(dl)
                 out.append(Hypothesis(x, y, phi, best.cov, sc, support, planes, False, "", through, best.rels,
