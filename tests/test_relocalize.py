@@ -273,3 +273,30 @@ def test_hidden_walls_in_a_recording_are_checked():
                 [{"plane": "w1", "up_to_m": 0.5, "direction": [3, 0]}]):
         with pytest.raises(ValueError):
             schema.hidden_walls_from_json(bad)
+
+
+def test_pair_solutions_of_one_pose_are_one_cluster_across_cell_borders():
+    """Pair solutions scatter by centimetres; where they straddle a cell border (here x = 0.15 m
+    and the heading's wrap at +-pi), they are still one pose to verify, while poses farther
+    apart than the cluster size stay apart."""
+    from robot.localization.relocalize import CLUSTER_PHI, CLUSTER_XY, _cluster
+
+    rng = np.random.default_rng(4)
+    truth = [(CLUSTER_XY, 1.0, 0.3), (2.0, 2.0, math.pi - 0.002), (2.0 + 2.5 * CLUSTER_XY, 2.0, math.pi)]
+    hyps = []
+    for k, (x, y, phi) in enumerate(truth):
+        for j in range(12):
+            hyps.append((x + rng.normal(0, 0.01), y + rng.normal(0, 0.01),
+                         math.remainder(phi + rng.normal(0, 0.003), 2 * math.pi), (k, j)))
+    clusters = _cluster(hyps)
+    assert len(clusters) == 3
+    assert sorted(c[3] for c in clusters) == [12, 12, 12]
+    for x, y, phi in truth:
+        c = min(clusters, key=lambda c: math.hypot(c[0] - x, c[1] - y))
+        assert math.hypot(c[0] - x, c[1] - y) < 0.01
+        assert abs(math.remainder(c[2] - phi, 2 * math.pi)) < 0.003
+        assert c[0] != x or c[1] != y  # (a mean of the members, not the truth itself)
+    # Two poses a little more than the cluster size apart are two places to verify.
+    apart = [(0.05, 0.05, 0.0, (0, 0)), (0.05 + 1.1 * CLUSTER_XY, 0.05, 0.0, (0, 1)),
+             (0.05, 0.05, 1.1 * CLUSTER_PHI, (0, 2))]
+    assert len(_cluster(apart)) == 3
