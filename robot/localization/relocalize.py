@@ -114,6 +114,7 @@ AGREEMENT_BLOCK = 1 << 18  # poses x map walls per block when ranking clusters (
 MAX_VERIFY = 400  # clusters verified by prediction (all of them in a building floor)
 REFINE_SLACK = 10.0  # nats a refined pose may score below its start and still be taken (scoring noise)
 MAX_REFINE = 24  # verified candidates refined by the localizer (those within reach of the best)
+MAX_REFINE_ALIKE = 96  # ... and where most of them are alike (within the margin of the best), up to this many
 # A later view's pose relative to the first comes from odometry (an in-place turn): refined per
 # hypothesis within these bounds (wheel odometry turns a few tenths of a degree off per 45 deg).
 VIEW_POS_STD = 0.02  # m
@@ -735,9 +736,24 @@ class Relocalizer:
         refined: List[Hypothesis] = []
         # The coarse scores use the odometry's view poses: their error grows with every view.
         reach = 4 * (UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1))
-        for s, _support, x, y, phi, _planes in scored[:MAX_REFINE]:
+        # Each further view brings its own model error (its odometry pose, its clutter): over many
+        # views a twin of a symmetric building drifts tens of nats from the right pose, so the
+        # margin grows with the views.
+        margin = UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1)
+        limit = MAX_REFINE
+        for k, (s, _support, x, y, phi, _planes) in enumerate(scored):
             if s < best_score - reach and len(refined) >= 2:
                 break
+            if k >= limit:
+                # A floor of alike places (a row of offices, mirrored flats) fills the refinements
+                # with poses the views cannot tell apart; the answer must list them all, so that
+                # the true one is among them: while most refined so far are within the margin of
+                # the best, refine on.
+                top = max((h.score for h in refined), default=-math.inf)
+                alike = sum(1 for h in refined if h.score >= top - margin)
+                if limit >= MAX_REFINE_ALIKE or 2 * alike < limit:
+                    break
+                limit = min(MAX_REFINE_ALIKE, 2 * limit)
             h = self._refine(views, (x, y, phi), scorer)
             if h is not None:
                 refined.append(h)
@@ -748,10 +764,6 @@ class Relocalizer:
             return RelocalizationResult(NONE, [], "no hypothesis explains the depth (support below "
                                         f"{MIN_SUPPORT:.0%})", ms, len(walls))
         hyps_out.sort(key=lambda h: -h.score)
-        # Each further view brings its own model error (its odometry pose, its clutter): over many
-        # views a twin of a symmetric building drifts tens of nats from the right pose, so the
-        # margin grows with the views.
-        margin = UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1)
         # A panel hiding a wall that a pose rests on is explained as well by that pose moved back
         # from the wall: the refined hypotheses within reach are scored with those rivals. The
         # best's own rivals are the same place, not rivals of it: what they leave open is how far
