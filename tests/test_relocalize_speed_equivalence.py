@@ -252,3 +252,35 @@ def test_the_span_test_of_the_pair_search_is_the_previous_code_s(relocalizers):
             t = mw.centre[k] + rng.normal(0, 1.0, (300, 2))
             for tol in (0.0, 0.15):
                 assert _span_fits(ends, phi, t, mw, k, tol).tolist() == reference_span_fits(ends, phi, t, mw, k, tol).tolist()
+
+
+@pytest.mark.parametrize("name", ["fzk_haus_ground", "institute_ground"])
+def test_a_score_cut_short_at_a_floor_is_an_upper_bound_and_one_not_cut_is_the_full_score(relocalizers, name):
+    """The verification stops scoring a cluster once it cannot reach the refinements' reach: what it
+    returns then must be at least the full score (or a cluster that could reach would be dropped),
+    and a score that is not cut must be the full one to the bit. Panel credit on, cluttered views
+    with a panel, two views (as a turn gives), floors all around the scores."""
+    rel = relocalizers[name]
+    rng = np.random.default_rng(21)
+    cut = kept = 0
+    for pose in free_space_poses(rel.map, 3, rng, z=0.15):
+        pose = tuple(float(v) for v in pose)
+        scene = SimScene(rel.map, clutter=list(random_site_clutter(rel.map, rng, 4, keep_clear=[pose[:2]])))
+        frames = [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=DepthNoise()) for c in ROBOT.cameras]
+        turned = [render_depth_frame(ROBOT, scene, c.name, (pose[0], pose[1], pose[2] + 0.8), rng=rng,
+                                     noise=DepthNoise()) for c in ROBOT.cameras]
+        scorer = _Scorer(ROBOT, rel.map, [(frames, (0.0, 0.0, 0.0)), (turned, (0.0, 0.0, 0.8))], rel.index,
+                         rel.max_range, stride=32)
+        for d in [(0.0, 0.0, 0.0)] + [tuple(rng.normal(0, (0.5, 0.5, 0.5))) for _ in range(8)]:
+            p = (pose[0] + d[0], pose[1] + d[1], pose[2] + d[2])
+            full = scorer.score(p, coarse=True)
+            assert not scorer.last_cut
+            for floor in (full[0] - 50.0, full[0] - 1e-9, full[0] + 1.0, full[0] + 200.0, full[0] + 2000.0):
+                got = scorer.score(p, coarse=True, floor=floor)
+                if scorer.last_cut:
+                    cut += 1
+                    assert got[0] >= full[0] and got[0] < floor
+                else:
+                    kept += 1
+                    assert got == full
+    assert cut > 10 and kept > 10  # both ways were exercised

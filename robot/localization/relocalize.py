@@ -535,6 +535,9 @@ class _Scorer:
                  max_range: float, stride: int = SCORE_STRIDE):
         self.robot, self.map, self.index, self.max_range = robot, plane_map, index, max_range
         self.items = []
+        # Per item, the most its pixels can add to a score (fine, coarse): each pixel at best lies
+        # exactly on its predicted wall or panel (see score's floor).
+        self.most: List[Tuple[float, float]] = []
         self.last_see_through = 0.0
         self.last_plain = 0.0
         for view, (frames, rel) in enumerate(views):
@@ -554,9 +557,21 @@ class _Scorer:
                 z_robot = (p_c @ T[:3, :3].T + T[:3, 3])[:, 2].reshape(h, w)
                 valid = (z > robot.localizer.min_range) & (z < max_range) & (z_robot > 0.05)
                 self.items.append((cam, grid, z, valid, rel, view))
+                self.most.append((self._most(z[valid], False), self._most(z[valid], True)))
+        self.last_cut = False
+
+    def _most(self, zm: np.ndarray, coarse: bool) -> float:
+        """The largest log-likelihood sum valid pixels at depths ``zm`` can reach: each one's term
+        at a residual of zero (on its predicted wall, or on a panel), nothing where that is
+        negative (a pixel no wall is predicted for scores zero)."""
+        sigma = 0.01 + 0.005 * zm ** 2
+        if coarse:
+            sigma = sigma + 0.03 + 0.02 * zm
+        peak = np.log(IN_WEIGHT * self.max_range / (sigma * math.sqrt(2.0 * math.pi)) + (1.0 - IN_WEIGHT))
+        return float(np.maximum(peak, 0.0).sum())
 
     def score(self, pose: Tuple[float, float, float], coarse: bool = False,
-              rels: Optional[Sequence[Pose]] = None) -> Tuple[float, float, List[str]]:
+              rels: Optional[Sequence[Pose]] = None, floor: float = -math.inf) -> Tuple[float, float, List[str]]:
         """(log-likelihood, share of wall pixels that agree, supporting walls) of the frames at ``pose``.
 
         ``rels``: each view's pose relative to the first, if not the odometry's (refined for this pose).
@@ -564,11 +579,28 @@ class _Scorer:
         ``coarse``: for hypotheses straight from a wall pair, a few centimetres and a degree off
         their refined pose; the agreement band is widened so that they are ranked by where
         they are, not by how exactly.
+
+        ``floor``: a score below it is of no interest. Once what the frames scored so far, with
+        the best panel gain so far and the most the frames still to score can add, falls short
+        of it, scoring stops: ``last_cut`` is set and the first value returned is that upper
+        bound, not the score (the others are 0 and []). Otherwise the result is the same as
+        without a floor, to the bit.
         """
         total, agree, scored, through = 0.0, 0, 0, 0
         seen: Dict[str, int] = {}
         panels: Dict[str, List[float]] = {}  # map wall -> [log-likelihood gain, pixels] if a panel hides it
-        for cam, grid, z, valid, rel, view in self.items:
+        self.last_cut = False
+        most_left = sum(m[1 if coarse else 0] for m in self.most) if floor > -math.inf else 0.0
+        for item, (cam, grid, z, valid, rel, view) in enumerate(self.items):
+            if floor > -math.inf:
+                # Every term of a pixel, and a panel's gain on it, is at most its peak: the
+                # score can reach at most this (a panel's prior left out, which only lowers it).
+                gain = max((v[0] for v in panels.values()), default=0.0)
+                bound = (total + max(gain, 0.0) + most_left) / PIXEL_CORRELATION
+                if bound < floor:
+                    self.last_cut = True
+                    return bound, 0.0, []
+                most_left -= self.most[item][1 if coarse else 0]
             if rels is not None:
                 rel = rels[view]
             T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
@@ -725,25 +757,47 @@ class Relocalizer:
         scorer = _Scorer(self.robot, self.map, views, self.index, self.max_range)
         coarse = _Scorer(self.robot, self.map, views, self.index, self.max_range, stride=COARSE_STRIDE)
         scale = (COARSE_STRIDE / SCORE_STRIDE) ** 2  # comparable with the fine scores (4x fewer pixels)
+        # The coarse scores use the odometry's view poses: their error grows with every view.
+        reach = 4 * (UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1))
+        # Only a cluster within ``reach`` of the best is refined, so one whose first frames already
+        # leave it short of that, whatever the rest could add, need not be scored to the end (in
+        # agreement order the good ones come first: on a 300-plane floor two in three stop
+        # before the last camera). Its entry keeps that upper bound and no support (None).
         scored = []
+        top = -math.inf
         for x, y, phi, _, _ in clusters:
-            s, support, planes = coarse.score((x, y, phi), coarse=True)
+            s, support, planes = coarse.score((x, y, phi), coarse=True, floor=(top - reach) / scale)
             s *= scale
+            if coarse.last_cut:
+                scored.append((s, None, x, y, phi, planes))
+                continue
+            top = max(top, s)
             scored.append((s, support, x, y, phi, planes))
         scored.sort(key=lambda r: -r[0])
         # Refine the best with the normal localizer and score again.
         best_score = scored[0][0]
         refined: List[Hypothesis] = []
-        # The coarse scores use the odometry's view poses: their error grows with every view.
-        reach = 4 * (UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1))
         # Each further view brings its own model error (its odometry pose, its clutter): over many
         # views a twin of a symmetric building drifts tens of nats from the right pose, so the
         # margin grows with the views.
         margin = UNIQUE_MARGIN + VIEW_MARGIN * (len(views) - 1)
         limit = MAX_REFINE
-        for k, (s, _support, x, y, phi, _planes) in enumerate(scored):
-            if s < best_score - reach and len(refined) >= 2:
-                break
+        k = 0
+        while k < len(scored):
+            s, support, x, y, phi, _planes = scored[k]
+            if s < best_score - reach:
+                if len(refined) >= 2:
+                    break
+                if any(e[1] is None for e in scored[k:]):
+                    # Fewer than two within reach: the next best are refined too, in the order of
+                    # their scores, so those known only by a bound are scored now.
+                    def scored_in_full(e):
+                        sc, sup, planes = coarse.score(e[2:5], coarse=True)
+                        return sc * scale, sup, e[2], e[3], e[4], planes
+
+                    rest = [e if e[1] is not None else scored_in_full(e) for e in scored[k:]]
+                    scored[k:] = sorted(rest, key=lambda r: -r[0])
+                    s, support, x, y, phi, _planes = scored[k]
             if k >= limit:
                 # A floor of alike places (a row of offices, mirrored flats) fills the refinements
                 # with poses the views cannot tell apart; the answer must list them all, so that
@@ -757,6 +811,7 @@ class Relocalizer:
             h = self._refine(views, (x, y, phi), scorer)
             if h is not None:
                 refined.append(h)
+            k += 1
         hyps_out = _merge(refined)
         hyps_out = [h for h in hyps_out if h.support >= MIN_SUPPORT]
         ms = (time.perf_counter() - t0) * 1e3
