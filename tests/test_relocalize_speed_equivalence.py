@@ -284,3 +284,43 @@ def test_a_score_cut_short_at_a_floor_is_an_upper_bound_and_one_not_cut_is_the_f
                     kept += 1
                     assert got == full
     assert cut > 10 and kept > 10  # both ways were exercised
+
+
+def test_relocalizing_with_the_score_floors_gives_the_answers_without_them(relocalizers, monkeypatch):
+    """The verification and the panel-rival scans stop scoring where a score cannot matter; with
+    every floor ignored (every score to the end) the answers are the same, to the bit: verdicts,
+    hypotheses, scores, hidden walls. Panels parallel to the walls in view, so that rival scans run."""
+    import robot.localization.relocalize as relocalize
+    from drivers.sim.clutter import parallel_panel
+
+    rel = relocalizers["fzk_haus_ground"]
+    cases = [((9.587, 2.355, -1.132), "w013", 0.26), ((9.599, 5.071, 0.04), "w015", 0.18),
+             ((2.5, 2.0, 0.7), None, 0.0)]
+    floored = relocalize._Scorer.score
+
+    def to_the_end(self, pose, coarse=False, rels=None, floor=-math.inf):
+        return floored(self, pose, coarse=coarse, rels=rels)
+
+    cut = []
+
+    def counted(self, pose, coarse=False, rels=None, floor=-math.inf):
+        out = floored(self, pose, coarse=coarse, rels=rels, floor=floor)
+        cut.append((coarse, self.last_cut))
+        return out
+
+    for pose, wall, offset in cases:
+        clutter = [parallel_panel(rel.map[wall], offset, 1.0, None)] if wall else []
+        rng = np.random.default_rng(3)
+        frames = [render_depth_frame(ROBOT, SimScene(rel.map, clutter), c.name, pose, rng=rng, noise=DepthNoise())
+                  for c in ROBOT.cameras]
+        with monkeypatch.context() as m:
+            m.setattr(relocalize._Scorer, "score", to_the_end)
+            want = rel.relocalize(frames, seed=1).to_json()
+        with monkeypatch.context() as m:
+            m.setattr(relocalize._Scorer, "score", counted)
+            got = rel.relocalize(frames, seed=1).to_json()
+        want.pop("ms"), got.pop("ms")
+        assert got == want
+        assert got["hypotheses"]
+    # Scores were cut short, in the verification and in the rival scans' fine scores.
+    assert sum(1 for coarse, c in cut if c and coarse) > 10 and sum(1 for coarse, c in cut if c and not coarse) > 0

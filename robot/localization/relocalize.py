@@ -904,7 +904,6 @@ class Relocalizer:
                 n = -n  # towards the robot
             walls.append((pid, n))
         out: List[Hypothesis] = []
-        scale = (COARSE_STRIDE / SCORE_STRIDE) ** 2
         for pid, n in walls:
             others = [m for q, m in walls if q != pid]
             # Free: across the others' normal (along n where there is no other wall). Where the
@@ -929,19 +928,27 @@ class Relocalizer:
             grid = np.arange(PANEL_MIN_OFFSET * 2, PANEL_MAX_OFFSET + 1e-9, PANEL_SCAN_STEP)
             if not len(grid):
                 continue
-            def scored(dl: float, at=at) -> Tuple[float, float, float, List[str], float, float]:
-                sc, support, planes = scorer.score(at(dl), rels=best.rels)
+            def scored(dl: float, at=at, floor: float = -math.inf) -> Tuple[float, float, float, List[str], float, float]:
+                sc, support, planes = scorer.score(at(dl), rels=best.rels, floor=floor)
                 return sc, dl, support, planes, scorer.last_see_through, scorer.last_plain
 
             first = scored(float(grid[0])) if free and math.isfinite(enough) else None
             if first is not None and first[0] >= enough and first[2] >= MIN_SUPPORT:
                 pick = first
             else:
-                rough = [coarse.score(at(float(dl)), coarse=True, rels=best.rels)[0] * scale for dl in grid]
+                # Both scans keep the best offset; an offset that cannot beat the best so far is
+                # not scored to the end (its bound stays below the best: the same pick).
+                rough: List[float] = []
+                for dl in grid:
+                    rough.append(coarse.score(at(float(dl)), coarse=True, rels=best.rels,
+                                              floor=max(rough, default=-math.inf))[0])
                 d0 = float(grid[int(np.argmax(rough))])
-                pick = max(scored(float(dl)) for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
-                                                                   min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP)
-                                                                   + 1e-9, 0.01))
+                pick = None
+                for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
+                                    min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP) + 1e-9, 0.01):
+                    got = scored(float(dl), floor=pick[0] if pick is not None else -math.inf)
+                    if pick is None or got > pick:
+                        pick = got
             sc, dl, support, planes, through, plain = pick
             if support >= MIN_SUPPORT:
                 x, y, phi = at(dl)
