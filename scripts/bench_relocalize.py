@@ -372,7 +372,16 @@ def scaling(quick: bool) -> List[str]:
     return lines
 
 
+def _machine():
+    """The fixed numpy and pure-Python workloads of the CPU benchmark, timed now: this machine's
+    speed against the reference's, for comparing the times here with other runs and machines."""
+    from bench_cpu import machine_factor
+
+    return machine_factor(5)
+
+
 def run(quick: bool = False) -> str:
+    machine_start = _machine()
     noise, noise_name = _noise()
     n = 8 if quick else 130
     lines = ["## Global relocalization (`robotctl relocalize`)", "",
@@ -437,6 +446,12 @@ def run(quick: bool = False) -> str:
         ts = all_times[(name, False)]
         lines.append(f"| {name} | {np.median(ts):.3f} | {np.percentile(ts, 95):.3f} |")
     lines += scaling(quick)
+    from bench_cpu import machine_line
+
+    end = _machine()
+    lines += ["", machine_line(machine_start) + f" At the end of this section: x{end['numpy_factor']:.2f} (numpy) and "
+              f"x{end['python_factor']:.2f} (Python). These machines are shared: the times above move with them "
+              "(two runs of the same code at different hours differed by up to 20 %)."]
     return "\n".join(lines)
 
 
