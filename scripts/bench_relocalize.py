@@ -450,8 +450,9 @@ def run(quick: bool = False) -> str:
 
     end = _machine()
     lines += ["", machine_line(machine_start) + f" At the end of this section: x{end['numpy_factor']:.2f} (numpy) and "
-              f"x{end['python_factor']:.2f} (Python). These machines are shared: the times above move with them "
-              "(two runs of the same code at different hours differed by up to 20 %)."]
+              f"x{end['python_factor']:.2f} (Python). These machines are shared, and the relocalization times move "
+              "with their load more than these fixed workloads do: compare runs by interleaved tests, not by "
+              "this table alone."]
     return "\n".join(lines)
 
 
