@@ -294,14 +294,22 @@ def test_relocalizing_with_the_score_floors_gives_the_answers_without_them(reloc
     from drivers.sim.clutter import parallel_panel
 
     rel = relocalizers["fzk_haus_ground"]
+    # (The last two leave one cluster within reach of the best: the verification entries known
+    # only by their bounds are then scored to the end, and the next best refined.)
     cases = [((9.587, 2.355, -1.132), "w013", 0.26), ((9.599, 5.071, 0.04), "w015", 0.18),
-             ((2.5, 2.0, 0.7), None, 0.0)]
+             ((2.5, 2.0, 0.7), None, 0.0), ((5.916, 6.767, -2.76), None, 0.0), ((5.24, 2.033, -1.1), None, 0.0)]
     floored = relocalize._Scorer.score
 
     def to_the_end(self, pose, coarse=False, rels=None, floor=-math.inf):
         return floored(self, pose, coarse=coarse, rels=rels)
 
     cut = []
+    in_full = []
+    scored_in_full = relocalize._in_full
+
+    def counted_in_full(*args):
+        in_full.append(1)
+        return scored_in_full(*args)
 
     def counted(self, pose, coarse=False, rels=None, floor=-math.inf):
         out = floored(self, pose, coarse=coarse, rels=rels, floor=floor)
@@ -318,9 +326,11 @@ def test_relocalizing_with_the_score_floors_gives_the_answers_without_them(reloc
             want = rel.relocalize(frames, seed=1).to_json()
         with monkeypatch.context() as m:
             m.setattr(relocalize._Scorer, "score", counted)
+            m.setattr(relocalize, "_in_full", counted_in_full)
             got = rel.relocalize(frames, seed=1).to_json()
         want.pop("ms"), got.pop("ms")
         assert got == want
         assert got["hypotheses"]
     # Scores were cut short, in the verification and in the rival scans' fine scores.
     assert sum(1 for coarse, c in cut if c and coarse) > 10 and sum(1 for coarse, c in cut if c and not coarse) > 0
+    assert in_full  # and the refinements went below the reach, past entries known only by a bound

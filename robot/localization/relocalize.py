@@ -791,11 +791,7 @@ class Relocalizer:
                 if any(e[1] is None for e in scored[k:]):
                     # Fewer than two within reach: the next best are refined too, in the order of
                     # their scores, so those known only by a bound are scored now.
-                    def scored_in_full(e):
-                        sc, sup, planes = coarse.score(e[2:5], coarse=True)
-                        return sc * scale, sup, e[2], e[3], e[4], planes
-
-                    rest = [e if e[1] is not None else scored_in_full(e) for e in scored[k:]]
+                    rest = [e if e[1] is not None else _in_full(coarse, e, scale) for e in scored[k:]]
                     scored[k:] = sorted(rest, key=lambda r: -r[0])
                     s, support, x, y, phi, _planes = scored[k]
             if k >= limit:
@@ -803,8 +799,8 @@ class Relocalizer:
                 # with poses the views cannot tell apart; the answer must list them all, so that
                 # the true one is among them: while most refined so far are within the margin of
                 # the best, refine on.
-                top = max((h.score for h in refined), default=-math.inf)
-                alike = sum(1 for h in refined if h.score >= top - margin)
+                lead = max((h.score for h in refined), default=-math.inf)
+                alike = sum(1 for h in refined if h.score >= lead - margin)
                 if limit >= MAX_REFINE_ALIKE or 2 * alike < limit:
                     break
                 limit = min(MAX_REFINE_ALIKE, 2 * limit)
@@ -1023,6 +1019,13 @@ def _label_edges(label: np.ndarray) -> np.ndarray:
     edge[:, 1:] |= diff_h
     edge[:, :-1] |= diff_h
     return edge
+
+
+def _in_full(coarse: _Scorer, entry: Tuple, scale: float) -> Tuple:
+    """A verification entry known only by its bound, scored to the end (the same layout)."""
+    x, y, phi = entry[2:5]
+    s, support, planes = coarse.score((x, y, phi), coarse=True)
+    return s * scale, support, x, y, phi, planes
 
 
 def _plain(h: Hypothesis) -> float:
