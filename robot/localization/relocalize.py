@@ -564,10 +564,7 @@ class _Scorer:
         """The largest log-likelihood sum valid pixels at depths ``zm`` can reach: each one's term
         at a residual of zero (on its predicted wall, or on a panel), nothing where that is
         negative (a pixel no wall is predicted for scores zero)."""
-        sigma = 0.01 + 0.005 * zm ** 2
-        if coarse:
-            sigma = sigma + 0.03 + 0.02 * zm
-        peak = np.log(IN_WEIGHT * self.max_range / (sigma * math.sqrt(2.0 * math.pi)) + (1.0 - IN_WEIGHT))
+        peak = _log_ratio(_density(np.zeros(len(zm)), _depth_sigma(zm, coarse)), self.max_range)
         return float(np.maximum(peak, 0.0).sum())
 
     def score(self, pose: Tuple[float, float, float], coarse: bool = False,
@@ -622,9 +619,7 @@ class _Scorer:
             with np.errstate(divide="ignore", invalid="ignore"):
                 z_pred = -pis[:, 3] / denom
             zm = z[r_idx, c_idx]
-            sigma = 0.01 + 0.005 * zm ** 2  # depth noise plus as-built walls, generous on purpose
-            if coarse:
-                sigma = sigma + 0.03 + 0.02 * zm  # a pair hypothesis: centimetres and a degree off
+            sigma = _depth_sigma(zm, coarse)
             res = (zm - z_pred) / sigma
             inlier = np.abs(res) < 3.0
             # Behind a predicted wall's edge is where a depth jump's flying pixels land (between the
@@ -633,9 +628,7 @@ class _Scorer:
             # Log-likelihood ratio against knowing nothing (depth uniform over the range): a pixel
             # on its predicted wall gains up to ~5 nats, clutter in front costs at most log(0.1),
             # and a point behind a predicted wall is free-space evidence against the pose.
-            gauss = np.exp(-0.5 * res ** 2) / (sigma * math.sqrt(2.0 * math.pi))
-            ll = np.log(IN_WEIGHT * gauss * self.max_range + (1.0 - IN_WEIGHT))
-            ll = np.where(behind, SEE_THROUGH, ll)
+            ll = np.where(behind, SEE_THROUGH, _log_ratio(_density(res, sigma), self.max_range))
             total += float(ll.sum())
             agree += int(np.count_nonzero(inlier))
             nearer = res < -1.0  # (the offset window decides; a coarse score's sigma is decimetres)
@@ -687,8 +680,7 @@ class _Scorer:
             if not on.any():
                 continue
             sel = idx[on]
-            g = np.exp(-0.5 * r_alt[on] ** 2) / (sigma[sel] * math.sqrt(2.0 * math.pi))
-            ll_alt = np.log(IN_WEIGHT * g * self.max_range + (1.0 - IN_WEIGHT))
+            ll_alt = _log_ratio(_density(r_alt[on], sigma[sel]), self.max_range)
             acc = panels.setdefault(views[k].plane_id, [0.0, 0])
             acc[0] += float(np.maximum(ll_alt - ll[sel], 0.0).sum())
             acc[1] += int(np.count_nonzero(~inlier[sel]))  # newly explained (for the support)
@@ -1019,6 +1011,26 @@ def _label_edges(label: np.ndarray) -> np.ndarray:
     edge[:, 1:] |= diff_h
     edge[:, :-1] |= diff_h
     return edge
+
+
+def _depth_sigma(zm: np.ndarray, coarse: bool) -> np.ndarray:
+    """Depth std (m) a score allows a pixel measured at ``zm``: depth noise plus as-built walls,
+    generous on purpose; for a coarse score (a pair hypothesis, centimetres and a degree off) more."""
+    sigma = 0.01 + 0.005 * zm ** 2
+    if coarse:
+        sigma = sigma + 0.03 + 0.02 * zm
+    return sigma
+
+
+def _density(res: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Normal density (1/m) of a depth ``res`` standard deviations from its prediction."""
+    return np.exp(-0.5 * res ** 2) / (sigma * math.sqrt(2.0 * math.pi))
+
+
+def _log_ratio(density: np.ndarray, max_range: float) -> np.ndarray:
+    """A pixel's log-likelihood ratio against knowing nothing (depth uniform over the range): on its
+    predicted surface with IN_WEIGHT, clutter in front of it otherwise."""
+    return np.log(IN_WEIGHT * density * max_range + (1.0 - IN_WEIGHT))
 
 
 def _in_full(coarse: _Scorer, entry: Tuple, scale: float) -> Tuple:
