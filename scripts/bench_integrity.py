@@ -37,7 +37,18 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from drivers.sim.building import free_space_poses  # noqa: E402
-from drivers.sim.clutter import as_built, door_leaf, is_wall, leaning_boards, map_openings, parallel_panel, person, wall_frame  # noqa: E402
+from drivers.sim.clutter import (  # noqa: E402
+    WallDeviation,
+    as_built,
+    built_walls,
+    door_leaf,
+    is_wall,
+    leaning_boards,
+    map_openings,
+    parallel_panel,
+    person,
+    wall_frame,
+)
 from drivers.sim.render import Box, DepthNoise, SimScene, render_depth_frame, render_depth_metres  # noqa: E402
 from robot.base.geometry import pose_to_T_ground_robot, wrap_angle  # noqa: E402
 from robot.config import QualityConfig, RobotConfig, load_robot_config  # noqa: E402
@@ -52,7 +63,7 @@ RENDER_RADIUS = 12.0  # m: the renderer gets the walls this close (its depth end
 WRONG_OFFSET = 0.03  # m: a used fit this far from the built wall (after the drawn errors) is another surface
 WRONG_ANGLE = math.radians(5.0)  # ... or turned this far (or four times its own heading std) from it
 OK_ERROR = 0.05  # m: 'ok' with a larger position error is what must not happen
-HIDDEN_SHARE = 0.15  # a wall this little of which its camera sees unoccluded counts as hidden (see wrong_used)
+HIDDEN_SHARE = 0.15  # a wall its camera has depth on this little of counts as hidden (see WallView)
 NEES_LIMIT = 16.27  # chi-square, 3 dof, 0.999: an error this far beyond the claimed covariance is not honest
 FUSED_EVERY = 10  # every k-th scene of the section's first run also runs the fused pose (see fused)
 
@@ -172,17 +183,16 @@ def make_scene(rng: np.random.Generator, maps: Dict[str, PlaneMap], robot: Robot
                  true_robot, scale, built, kinds, panel_walls, scene, noise)
 
 
-def wrong_used(scene: Scene, res, robot: RobotConfig, plane_map: PlaneMap) -> List[Tuple[str, float]]:
-    """Used planes whose fit is not the built wall, each with the share of the wall its camera saw
-    unoccluded (``visible_share``). The fit's patch (its mean inlier point, taken back into its
-    camera frame with the nominal mount, as the localizer put it into the robot frame) must lie on
-    the built wall as the true camera sees it at the true pose, with its scale error: within 3 cm
-    plus twice the matcher's systematic error at that depth; and face the same way within 5 deg
-    or four times the measurement's heading std (a small far patch's normal is that uncertain).
-
-    A wall its camera sees less than ``HIDDEN_SHARE`` of counts as hidden: what is left of it lies
-    in the image's left border band (no stereo match), the clutter's stereo shadow and the ROI's
-    margin, so no depth of it reaches the fit."""
+def wrong_used(scene: Scene, res, robot: RobotConfig, plane_map: PlaneMap) -> List[Tuple[str, str]]:
+    """Used planes whose fit is not the built wall, each with what kept it from being told apart
+    (``HIDDEN``, ``WITHIN_NOISE`` or ``SEEN``: see :func:`distinct`). The fit's patch (its mean
+    inlier point, taken back into its camera frame with the nominal mount, as the localizer put it
+    into the robot frame) must lie on the built wall as the true camera sees it at the true pose,
+    with its scale error: within 3 cm plus twice the matcher's systematic error at that depth; and
+    face the same way within 5 deg or four times the measurement's heading std (a small far
+    patch's normal is that uncertain). A patch off by more whose pixels show the wall itself
+    unoccluded is the wall measured with its noise, not another surface: not counted (its error is
+    the covariance's business, which NEES and the protection levels test)."""
     out = []
     psi_std = {(m.plane_id, m.camera): math.sqrt(float(m.R[1, 1])) for m in res.measurements}
     for rep in res.planes:
@@ -205,31 +215,81 @@ def wrong_used(scene: Scene, res, robot: RobotConfig, plane_map: PlaneMap) -> Li
         angle = math.acos(float(np.clip(n_true @ n_C, -1.0, 1.0)))
         limit = WRONG_OFFSET + 2.0 * c_C[2] ** 2 * 0.035 / (cam.intrinsics_from_fov()[0, 0] * 0.05)
         if abs(off) > limit or angle > max(WRONG_ANGLE, 4.0 * psi_std.get((rep.id, rep.camera), 0.0)):
-            share = visible_share(scene, rep.id, rep.camera)
+            view = WallView(scene, rep.id, rep.camera)
+            kind, why = view.distinct(c_C / (1.0 + scene.scale[rep.camera]))
+            if kind == ON_WALL:
+                continue
             out.append((f"{rep.id}/{rep.camera}: {1000 * off:+.0f} mm off the built wall at its patch, "
-                        f"{math.degrees(angle):.1f} deg, {100 * share:.0f} % of the wall visible", share))
+                        f"{math.degrees(angle):.1f} deg, {100 * view.share:.0f} % of the wall visible, {why}", kind))
     return out
 
 
-def visible_share(scene: Scene, plane_id: str, camera: str) -> float:
-    """Share of the pixels where the camera would see the built wall that show it with the clutter
-    there (exact depth): 0 when clutter hides all of it, so that no single frame can tell."""
-    cam = scene.true_robot.camera(camera)
-    K = cam.intrinsics_from_fov()
-    T = pose_to_T_ground_robot(*scene.truth) @ cam.T_robot_camera
-    walls = SimScene(scene.sim.plane_map, walls=scene.built, floor=False, backdrop=False)
-    z_walls = render_depth_metres(walls, T, K, cam.width, cam.height)
-    z_all = render_depth_metres(scene.sim, T, K, cam.width, cam.height)
-    plane = scene.sim.plane_map[plane_id]
-    cols = (np.arange(cam.width) - K[0, 2]) / K[0, 0]
-    rows = (np.arange(cam.height) - K[1, 2]) / K[1, 1]
-    pi_C = plane.pi @ T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z_plane = -pi_C[3] / (pi_C[0] * cols[None, :] + pi_C[1] * rows[:, None] + pi_C[2])
-    own = (z_walls > 0) & (np.abs(z_walls - z_plane) < 0.05)
-    if not own.any():
-        return 0.0
-    return float(np.count_nonzero(own & (np.abs(z_all - z_walls) < 1e-6))) / float(np.count_nonzero(own))
+ON_WALL, HIDDEN, WITHIN_NOISE, SEEN = "on the wall", "hidden", "within the depth noise", "seen"
+PATCH_PX = 4  # half-width of the pixel window around a fit's patch that says what surface it is
+
+
+class WallView:
+    """One wall as one camera of the scene truly sees it: where it is the nearest built surface
+    by more than a centimetre (``own``: the walls drawn without it lie farther, or nowhere) and
+    where, of that, the clutter leaves it in sight and the scene's frame has depth (``visible``). Testing the depth against the
+    wall's infinite plane instead would count a coplanar segment of another wall (one face of a
+    building's long wall split at a crossing wall) as this one's."""
+
+    def __init__(self, scene: Scene, plane_id: str, camera: str):
+        cam = scene.true_robot.camera(camera)
+        self.K = K = cam.intrinsics_from_fov()
+        self.scene, self.cam = scene, cam
+        T = pose_to_T_ground_robot(*scene.truth) @ cam.T_robot_camera
+        built, plane_map = scene.built, scene.sim.plane_map
+        others = built_walls(plane_map, {**built.deviations, plane_id: dataclasses.replace(
+            built.deviations.get(plane_id, WallDeviation()), built=False)})
+        self.z_walls = render_depth_metres(SimScene(plane_map, walls=built, floor=False, backdrop=False), T, K,
+                                           cam.width, cam.height)
+        z_others = render_depth_metres(SimScene(plane_map, walls=others, floor=False, backdrop=False), T, K,
+                                       cam.width, cam.height)
+        self.z_all = render_depth_metres(scene.sim, T, K, cam.width, cam.height)
+        self.own = (self.z_walls > 0) & ((z_others <= 0) | (z_others > self.z_walls + 0.01))
+        self.visible = self.own & (np.abs(self.z_all - self.z_walls) < 1e-6)
+        frame = next((f for f in scene.frames if f.camera == camera), None)
+        if frame is not None and frame.depth.shape == self.visible.shape:
+            # In sight but without depth is not seen: the stereo shadow beside clutter, the image's
+            # left border band and the drop-outs give the localizer nothing of the wall.
+            self.visible &= frame.depth > 0
+
+    @property
+    def share(self) -> float:
+        """Share of the wall's pixels in sight: 0 when clutter hides all of it, so that no single
+        frame can tell."""
+        n = np.count_nonzero(self.own)
+        return float(np.count_nonzero(self.visible)) / n if n else 0.0
+
+    def distinct(self, p_camera: np.ndarray) -> Tuple[str, str]:
+        """What the true camera sees around the point ``p_camera`` (a fit's patch, true camera
+        frame): ``ON_WALL`` when most of the window shows the wall unoccluded; else another surface,
+        ``HIDDEN`` when the camera sees under ``HIDDEN_SHARE`` of the wall, ``WITHIN_NOISE`` when
+        that surface stands in front of the wall by less than the fit can tell apart (three depth
+        standard deviations of the camera's noise there, or the fit's 3 cm: the localizer's own
+        'behind' test), ``SEEN`` otherwise; and a phrase saying so."""
+        K, (h, w) = self.K, self.z_all.shape
+        u = int(round(K[0, 0] * p_camera[0] / p_camera[2] + K[0, 2]))
+        v = int(round(K[1, 1] * p_camera[1] / p_camera[2] + K[1, 2]))
+        win = (slice(min(max(v - PATCH_PX, 0), h - 1), min(max(v + PATCH_PX + 1, 1), h)),
+               slice(min(max(u - PATCH_PX, 0), w - 1), min(max(u + PATCH_PX + 1, 1), w)))
+        if self.visible[win].mean() >= 0.5:
+            return ON_WALL, "its patch on the wall"
+        front = self.own[win] & ~self.visible[win]
+        if not front.any():
+            # Not in front of this wall: another wall, or clutter beside it (a ROI the pose put
+            # there); with so little of the wall in sight, that too is the clutter's doing.
+            return (HIDDEN if self.share < HIDDEN_SHARE else SEEN), "its patch on another surface"
+        z_wall = float(np.median(self.z_walls[win][front]))
+        gap = z_wall - float(np.median(self.z_all[win][front]))
+        sigma = float(self.scene.noise.sigma(np.array(z_wall), float(K[0, 0])))
+        tell = max(3.0 * sigma, 0.03)
+        why = f"its patch on clutter {1000 * gap:.0f} mm in front (3 depth std there: {3000 * sigma:.0f} mm)"
+        if self.share < HIDDEN_SHARE:
+            return HIDDEN, why
+        return (WITHIN_NOISE if gap < tell else SEEN), why
 
 
 def evaluate(scene: Scene, loc: Localizer, robot: RobotConfig, plane_map: PlaneMap, quality: QualityConfig) -> Dict:
@@ -246,8 +306,8 @@ def evaluate(scene: Scene, loc: Localizer, robot: RobotConfig, plane_map: PlaneM
             "ok_gt": res.status == "ok" and err_h > OK_ERROR,
             "available": (res.status == "ok" and res.horizontal_pl < quality.horizontal_alert_limit
                           and res.heading_pl < math.radians(quality.heading_alert_limit_deg)),
-            "wrong": [w for w, _ in wrong], "wrong_visible": [v for _, v in wrong],
-            "hidden_wall": any(v < HIDDEN_SHARE for _, v in wrong),
+            "wrong": [w for w, _ in wrong], "wrong_kind": [k for _, k in wrong],
+            "indistinct_wall": any(k in (HIDDEN, WITHIN_NOISE) for _, k in wrong),
             "ok_beyond_cov": fix and nees is not None and nees > NEES_LIMIT,
             "used": sum(p.used for p in res.planes),
             "clutter": scene.clutter, "scale": scene.scale, "ms": res.ms,
@@ -331,13 +391,15 @@ def summarise(rows: Sequence[Dict]) -> Dict:
         "scenes": len(rows),
         "status": {s: sum(r["status"] == s for r in rows) for s in ("ok", "unprotected", "degenerate", "inconsistent", "no_planes")},
         "wrong_used": sum(len(r["wrong"]) for r in rows),
-        "wrong_used_visible": sum(sum(v >= HIDDEN_SHARE for v in r["wrong_visible"]) for r in rows),
+        "wrong_used_hidden": sum(r["wrong_kind"].count(HIDDEN) for r in rows),
+        "wrong_used_noise": sum(r["wrong_kind"].count(WITHIN_NOISE) for r in rows),
+        "wrong_used_seen": sum(r["wrong_kind"].count(SEEN) for r in rows),
         "planes_used": sum(r["used"] for r in rows),
         "misleading": sum(r["misleading"] for r in rows),
         "ok_gt_50mm": sum(r["ok_gt"] for r in rows),
-        "ok_gt_50mm_hidden": sum(r["ok_gt"] and r["hidden_wall"] for r in rows),
-        "ok_gt_50mm_within_cov": sum(r["ok_gt"] and not r["hidden_wall"] and not r["ok_beyond_cov"] for r in rows),
-        "ok_beyond_cov": sum(r["ok_beyond_cov"] and not r["hidden_wall"] for r in rows),
+        "ok_gt_50mm_hidden": sum(r["ok_gt"] and r["indistinct_wall"] for r in rows),
+        "ok_gt_50mm_within_cov": sum(r["ok_gt"] and not r["indistinct_wall"] and not r["ok_beyond_cov"] for r in rows),
+        "ok_beyond_cov": sum(r["ok_beyond_cov"] and not r["indistinct_wall"] for r in rows),
         "available": sum(r["available"] for r in rows),
         "err_h_median_mm": 1000 * _pct([r["err_h"] for r in ok], 50),
         "err_h_p95_mm": 1000 * _pct([r["err_h"] for r in ok], 95),
@@ -355,8 +417,9 @@ def table(rows: Sequence[Dict]) -> str:
     groups = [("all", rows)] + [(m, [r for r in rows if r["map"] == m]) for m in MAPS] + \
         [(f"{k} prior", [r for r in rows if r["mode"] == k]) for k in ("cold", "tracking")] + \
         [("with a panel", [r for r in rows if "panel" in r["clutter"]])]
-    lines = ["| scenes | n | ok / unprotected / degenerate / inconsistent / no planes | wrong identifications used (of them, of a wall "
-             "not hidden) | misleading (error > PL) | ok with error > 50 mm: all / hidden wall / within its covariance | "
+    lines = ["| scenes | n | ok / unprotected / degenerate / inconsistent / no planes | wrong identifications used (of them: hidden / "
+             "within the depth noise / seen) | misleading (error > PL) | ok with error > 50 mm: all / hidden or within "
+             "the noise / within its covariance | "
              "fix beyond its covariance | available (ok: PL < alert limit) | pos err median / p95 (mm, fixes) | "
              "heading err median / p95 (deg, fixes) | NEES mean / median (fixes, right walls) | PL median (m / deg, fixes) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -367,7 +430,8 @@ def table(rows: Sequence[Dict]) -> str:
         st = s["status"]
         lines.append(f"| {name} | {s['scenes']} | {st['ok']} / {st['unprotected']} / {st['degenerate']} / "
                      f"{st['inconsistent']} / {st['no_planes']} | "
-                     f"{s['wrong_used']} of {s['planes_used']} ({s['wrong_used_visible']}) | {s['misleading']} | "
+                     f"{s['wrong_used']} of {s['planes_used']} ({s['wrong_used_hidden']} / {s['wrong_used_noise']} / "
+                     f"{s['wrong_used_seen']}) | {s['misleading']} | "
                      f"{s['ok_gt_50mm']} / {s['ok_gt_50mm_hidden']} / {s['ok_gt_50mm_within_cov']} | {s['ok_beyond_cov']} | "
                      f"{s['available']} | "
                      f"{s['err_h_median_mm']:.2f} / {s['err_h_p95_mm']:.2f} | {s['err_phi_median_deg']:.3f} / "
@@ -428,16 +492,24 @@ def section(quick: bool = False) -> str:
              f"or, for {100 * TRACKING_SHARE:.0f} %, a tracking prior (2 cm, 1 deg). Protection levels at risk "
              f"{robot_risk()}; alert limits {q.horizontal_alert_limit} m and {q.heading_alert_limit_deg} deg. "
              "'Wrong identification': a used fit more than 3 cm (plus twice the matcher's systematic error at its "
-             "depth) or 5 deg from the built wall after the drawn scale, mount and as-built errors; 'hidden': its camera "
-             f"sees under {100 * HIDDEN_SHARE:.0f} % of the wall unoccluded (the rest in the image's left border band, "
-             "the clutter's stereo shadow and the ROI margin), so no single frame can tell the clutter from the wall. "
+             "depth) or 5 deg from the built wall after the drawn scale, mount and as-built errors, whose patch lies on "
+             "another surface (a patch that far off whose pixels show the wall itself is the wall measured with its "
+             "noise, and is left to NEES and the protection levels); 'hidden': its camera "
+             f"has depth on under {100 * HIDDEN_SHARE:.0f} % of the wall's pixels (the rest hidden by clutter, in its "
+             "stereo shadow, in the image's left border band or dropped out), so no single frame can tell the clutter "
+             "from the wall; "
+             "'within the depth noise': the surface at the patch stands in front of the wall by less than three depth "
+             "standard deviations of the camera there (or 3 cm), the fit's own test of what lies behind a surface, so "
+             "the two are one noisy surface to any single pixel; 'seen': neither. "
              "'Misleading': the position or heading error exceeds its protection level. 'Beyond its covariance': "
              f"NEES over {NEES_LIMIT} (chi-square 3 dof, 0.999).",
              "", out["table"], "",
              f"- Targets: misleading 0 (got {s['misleading']}); ok with error > 50 mm 0 (got {s['ok_gt_50mm']}: "
-             f"{s['ok_gt_50mm_hidden']} behind a hidden wall, {s['ok_gt_50mm_within_cov']} within their own covariance, "
-             f"{s['ok_gt_50mm'] - s['ok_gt_50mm_hidden'] - s['ok_gt_50mm_within_cov']} else); wrong identifications used "
-             f"0 (got {s['wrong_used']}, {s['wrong_used_visible']} of a wall not hidden); NEES mean in [2, 4] (got "
+             f"{s['ok_gt_50mm_hidden']} behind a hidden wall or one within the depth noise, {s['ok_gt_50mm_within_cov']} "
+             f"within their own covariance, {s['ok_gt_50mm'] - s['ok_gt_50mm_hidden'] - s['ok_gt_50mm_within_cov']} "
+             f"else); wrong identifications used 0 (got {s['wrong_used']}: {s['wrong_used_hidden']} of a hidden wall, "
+             f"{s['wrong_used_noise']} within the depth noise, {s['wrong_used_seen']} of a wall seen and "
+             f"separable); NEES mean in [2, 4] (got "
              f"{s['nees_mean']:.2f}).",
              f"- {out['seconds']:.0f} s for {n} scenes (rendering included).", *cases(out["rows"]),
              "- 'ok' is a vouched-for fix: fully observed, consistent, and both protection levels under their alert "
@@ -472,8 +544,8 @@ def section(quick: bool = False) -> str:
 def cases(rows: Sequence[Dict], limit: int = 20) -> List[str]:
     """The scenes worth a look: misleading, a fix beyond its covariance, ok over 50 mm not behind
     a hidden wall, or a wrong identification of a wall its camera saw."""
-    bad = [r for r in rows if r["misleading"] or r["ok_beyond_cov"] or (r["ok_gt"] and not r["hidden_wall"])
-           or any(v >= HIDDEN_SHARE for v in r["wrong_visible"])]
+    bad = [r for r in rows if r["misleading"] or r["ok_beyond_cov"] or (r["ok_gt"] and not r["indistinct_wall"])
+           or SEEN in r["wrong_kind"]]
     out = [f"- Scenes worth a look ({min(len(bad), limit)} of {len(bad)}):"] if bad else []
     for r in bad[:limit]:
         out.append(f"  - {r['map']} {r['mode']} at ({r['truth'][0]:.2f}, {r['truth'][1]:.2f}, {r['truth'][2]:.2f}): "

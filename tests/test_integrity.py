@@ -39,13 +39,15 @@ def test_ok_is_never_more_than_50_mm_wrong(sample):
     for r in sample["rows"]:
         if r["status"] == "ok":
             assert r["available"], r
-        if r["status"] in FIX_STATUSES and not r["hidden_wall"]:
+        if r["status"] in FIX_STATUSES and not r["indistinct_wall"]:
             assert not r["ok_beyond_cov"], r
 
 
-def test_wrong_identifications_are_only_walls_hidden_behind_clutter(sample):
+def test_wrong_identifications_are_only_walls_no_frame_can_tell_from_the_clutter(sample):
+    # Hidden (its camera sees under 15 % of it) or within the depth noise (the clutter stands in
+    # front of it by less than the fit's own test of 'behind' can tell): see bench_integrity.WallView.
     for r in sample["rows"]:
-        assert all(share < bench_integrity.HIDDEN_SHARE for share in r["wrong_visible"]), r
+        assert bench_integrity.SEEN not in r["wrong_kind"], r
 
 
 def test_the_covariance_is_honest_on_average(sample):
