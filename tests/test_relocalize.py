@@ -314,3 +314,56 @@ def test_a_row_of_alike_offices_lists_every_one_with_the_truth_among_them():
     assert res.verdict == AMBIGUOUS
     assert len(res.hypotheses) > MAX_REFINE
     assert min(pose_error(h, pose)[0] + pose_error(h, pose)[1] for h in res.hypotheses) < 0.03
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_best_the_localizer_leaves_loose_along_one_wall_is_pinned_by_the_score(house, seed):
+    """In the hall of the house the cameras see one long wall well and the door jambs and wall ends
+    that fix the position along it only as slivers, too small for a plane fit: the localizer's fix
+    is degenerate. The score sees the slivers; it pins the loose direction, with a deliberately
+    wide standard deviation, and the verdict is unique."""
+    pose = (3.422, 1.783, -0.473)
+    frames = [render_depth_frame(ROBOT, SimScene(HOUSE), c.name, pose, rng=np.random.default_rng(seed),
+                                 noise=DepthNoise.realistic()) for c in ROBOT.cameras]
+    res = house.relocalize(frames, seed=seed)
+    assert res.verdict == UNIQUE, res.reason
+    h = res.hypotheses[0]
+    assert h.status == "degenerate" and h.loose is not None and h.pinned is not None
+    u = np.array(h.loose)
+    err = np.array([h.x - pose[0], h.y - pose[1]])
+    assert abs(float(err @ u)) < h.pinned  # within one std along the pinned direction
+    assert abs(float(err @ np.array([-u[1], u[0]]))) < 0.01  # the localizer's own direction: millimetres
+    cov = np.asarray(h.cov)
+    assert math.isclose(float(u @ cov[:2, :2] @ u), h.pinned ** 2, rel_tol=1e-9)
+    assert h.to_json()["pinned"]["std_m"] == h.pinned
+
+
+class _Profile:
+    """A scorer stand-in: the score along x only, from ``f``."""
+
+    def __init__(self, f):
+        self.f, self.last_see_through, self.last_plain = f, 0.0, 0.0
+
+    def score(self, pose, rels=None):
+        s = self.f(pose[0])
+        self.last_plain = s
+        return s, 0.9, ["w"]
+
+
+@pytest.mark.parametrize("profile, pinned_at", [
+    (lambda x: -4000.0 * (x - 0.06) ** 2, 0.06),  # one peak: 40 nats down 0.1 m either side
+    (lambda x: -100.0 * x ** 2, None),  # too flat: within 40 nats all the way to PIN_REACH
+    (lambda x: -4000.0 * min((x - 0.15) ** 2, (x + 0.15) ** 2), None),  # two places along the direction
+])
+def test_the_pin_takes_one_peak_and_refuses_a_flat_or_split_profile(house, profile, pinned_at):
+    from robot.localization.relocalize import PIN_STEP, Hypothesis
+
+    best = Hypothesis(0.0, 0.0, 0.3, np.diag([1e-6, 0.0025, 1e-6]), 0.0, 0.9, ["w"], True, "degenerate",
+                      loose=(1.0, 0.0))
+    got = house._pin(best, _Profile(profile), 40.0)
+    if pinned_at is None:
+        assert got is None
+        return
+    assert got is not None and abs(got.x - pinned_at) < 1e-9 and got.y == 0.0 and got.phi == 0.3
+    assert 0.1 <= got.pinned <= 0.1 + 2 * PIN_STEP  # the half-width of the stretch within 40 nats
+    assert math.isclose(got.cov[0][0], got.pinned ** 2) and got.cov[1][1] == 0.0025  # the other directions kept

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -113,6 +113,11 @@ COARSE_STRIDE = 32  # the same for the first, coarse verification of every clust
 AGREEMENT_BLOCK = 1 << 18  # poses x map walls per block when ranking clusters (a few MB per array)
 MAX_VERIFY = 400  # clusters verified by prediction (all of them in a building floor)
 REFINE_SLACK = 10.0  # nats a refined pose may score below its start and still be taken (scoring noise)
+# A best the localizer fixes in all but one direction of position (the walls that would fix it are
+# slivers too small for it to fit, but the score sees them): profiled by the score this far along
+# that direction, in these steps (see Relocalizer._pin).
+PIN_REACH = 0.3  # m
+PIN_STEP = 0.02  # m
 MAX_REFINE = 24  # verified candidates refined by the localizer (those within reach of the best)
 MAX_REFINE_ALIKE = 96  # ... and where most of them are alike (within the margin of the best), up to this many
 # A later view's pose relative to the first comes from odometry (an in-place turn): refined per
@@ -154,6 +159,10 @@ class Hypothesis:
     panels: List[Hypothesis] = field(default_factory=list)  # such rivals of this one (scored)
     # The panels this pose cannot exclude (set on the answers of a verdict): each {"plane", "up_to_m", "direction"}.
     hidden_walls: List[Dict] = field(default_factory=list)
+    # (ux, uy): the one direction of position the localizer left unobserved (status degenerate).
+    loose: Optional[Tuple[float, float]] = None
+    # m: that direction pinned by the score (Relocalizer._pin): the std given to it; None: not pinned.
+    pinned: Optional[float] = None
 
     @property
     def top_score(self) -> float:
@@ -164,7 +173,9 @@ class Hypothesis:
         return {"x": self.x, "y": self.y, "phi": self.phi, "cov": np.asarray(self.cov).tolist(),
                 "score": self.score, "support": self.support, "planes": list(self.planes),
                 "refined": self.refined, "status": self.status, "see_through": self.see_through,
-                **({"hidden_walls": list(self.hidden_walls)} if self.hidden_walls else {})}
+                **({"hidden_walls": list(self.hidden_walls)} if self.hidden_walls else {}),
+                **({"pinned": {"direction": [float(c) for c in self.loose], "std_m": self.pinned}}
+                   if self.pinned is not None and self.loose is not None else {})}
 
 
 @dataclass
@@ -848,13 +859,24 @@ class Relocalizer:
         _with_panels([best], best.score - margin)
         # Unique only as the normal localizer refined it: a hypothesis whose refinement went astray
         # is a pose only the coarse score vouches for (in the benchmark, most wrong uniques were).
-        if (len(close) == 1 and best.refined and best.status in FIX_STATUSES and best.support >= UNIQUE_SUPPORT
+        # A fix the localizer leaves loose along one direction of position is confirmed in the
+        # others, and unique only if the score pins that one (_pin).
+        if (len(close) == 1 and best.refined and best.support >= UNIQUE_SUPPORT
                 and best.see_through <= UNIQUE_SEE_THROUGH):
-            return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
+            if best.status == "degenerate" and best.loose is not None:
+                pinned = self._pin(best, scorer, margin)
+                if pinned is not None:
+                    hyps_out[0] = best = pinned
+            if best.status in FIX_STATUSES or best.pinned is not None:
+                return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
         if len(close) == 1:
             h = hyps_out[0]
             if not h.refined:
                 why = "the best hypothesis is not confirmed: the normal localizer's refinement of it went astray"
+            elif h.status == "degenerate" and h.loose is not None and h.support >= UNIQUE_SUPPORT \
+                    and h.see_through <= UNIQUE_SEE_THROUGH:
+                why = (f"best hypothesis not confirmed by the localizer (degenerate), and the views do not fix its "
+                       f"position along ({h.loose[0]:.2f}, {h.loose[1]:.2f}) within {PIN_REACH:g} m either")
             elif h.status not in FIX_STATUSES:
                 why = f"best hypothesis not confirmed by the localizer ({h.status})"
             elif h.see_through > UNIQUE_SEE_THROUGH:
@@ -968,7 +990,37 @@ class Relocalizer:
             return unrefined
         cov = view_covariance((res.x, res.y, res.phi), np.asarray(res.cov), rel)
         return Hypothesis(p[0], p[1], p[2], cov, s, support, planes, True, res.status, scorer.last_see_through, rels,
-                          plain_score=scorer.last_plain)
+                          plain_score=scorer.last_plain, loose=_loose_position(res.status, res.unobservable))
+
+    def _pin(self, best: Hypothesis, scorer: _Scorer, margin: float) -> Optional[Hypothesis]:
+        """``best`` with its loose direction of position fixed by the views' score, or None.
+
+        The localizer leaves a direction loose when the walls it can fit are parallel: the wall
+        ends, door jambs and short walls that fix the rest are slivers too small for a plane fit
+        (under ``min_roi_pixels``), yet they are in the score's pixels. So the score is profiled
+        along that direction, PIN_REACH either way: the pose goes where it peaks, and the stretch
+        within ``margin`` of the peak (the unique verdict's own margin between places) is the
+        uncertainty left, its half-width taken as one standard deviation: a likelihood that falls
+        by the margin there is far steeper than that (some nine standard deviations for a normal
+        one), so the covariance errs wide, never narrow. Not pinned (None) if that stretch reaches
+        PIN_REACH on either side or is not one piece (two places along the direction explain the
+        views)."""
+        assert best.loose is not None
+        ux, uy = best.loose
+        ts = np.arange(-PIN_REACH, PIN_REACH + 1e-9, PIN_STEP)
+        scores = [scorer.score((best.x + t * ux, best.y + t * uy, best.phi), rels=best.rels)[0] for t in ts]
+        k = int(np.argmax(scores))
+        inside = [i for i, sc in enumerate(scores) if sc >= scores[k] - margin]
+        if inside[0] == 0 or inside[-1] == len(ts) - 1 or inside[-1] - inside[0] + 1 != len(inside):
+            return None
+        half = max(float(ts[inside[-1]] - ts[k]), float(ts[k] - ts[inside[0]])) + PIN_STEP
+        p = (best.x + float(ts[k]) * ux, best.y + float(ts[k]) * uy, best.phi)
+        s, support, planes = scorer.score(p, rels=best.rels)
+        u = np.array([ux, uy, 0.0])
+        keep = np.eye(3) - np.outer(u, u)
+        cov = keep @ np.asarray(best.cov, float) @ keep + half * half * np.outer(u, u)
+        return replace(best, x=p[0], y=p[1], cov=cov, score=s, support=support, planes=planes,
+                       see_through=scorer.last_see_through, plain_score=scorer.last_plain, pinned=half)
 
     def _refine_views(self, views: Sequence[View], pose: Pose) -> List[Pose]:
         """Each view's pose relative to the first, re-estimated by the localizer from ``pose`` and the
@@ -1038,6 +1090,18 @@ def _in_full(coarse: _Scorer, entry: Tuple, scale: float) -> Tuple:
     x, y, phi = entry[2:5]
     s, support, planes = coarse.score((x, y, phi), coarse=True)
     return s * scale, support, x, y, phi, planes
+
+
+def _loose_position(status: str, unobservable: Sequence[Dict]) -> Optional[Tuple[float, float]]:
+    """The one direction of position (unit, ground frame) a degenerate fix leaves unobserved; None
+    if the fix is not degenerate, or leaves the heading or more than one direction loose."""
+    if status != "degenerate" or len(unobservable) != 1:
+        return None
+    v = unobservable[0]["direction"]
+    n = math.hypot(v[0], v[1])
+    if abs(v[2]) > 1e-6 or n < 1e-9:
+        return None
+    return (v[0] / n, v[1] / n)
 
 
 def _plain(h: Hypothesis) -> float:
