@@ -891,7 +891,8 @@ class Relocalizer:
                 pinned = self._pin(best, scorer, margin)
                 if pinned is not None:
                     hyps_out[0] = best = pinned
-            if best.status in FIX_STATUSES or best.pinned is not None:
+            if best.status in FIX_STATUSES or (best.pinned is not None and best.support >= UNIQUE_SUPPORT
+                                               and best.see_through <= UNIQUE_SEE_THROUGH):
                 return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
         if len(close) == 1:
             h = hyps_out[0]
