@@ -213,6 +213,45 @@ def test_the_app_takes_the_frames_of_all_streaming_cameras_as_one_set():
     assert asyncio.run(scenario(CameraState.STREAMING.value, False)) == {front}  # waited, then alone
 
 
+def test_a_set_is_timed_from_its_first_frame_not_from_the_last_sets_wake_up():
+    """The frame that completed the last set leaves the event set: the next wait must not start
+    with every slot empty (its half-period wait would then run out before the next first frame
+    met its partner, and each set split into single frames, one executor hop and fusion each)."""
+    import asyncio
+
+    from drivers.camera.base import CameraState
+    from robot.app.controller import RobotApp
+    from robot.base.samples import DepthFrame
+    from robot.maps.plane_map import load_plane_map
+
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    front, left = (c.name for c in ROBOT.cameras)
+    waits = []
+
+    async def rest_of_set():
+        waits.append({name for name, f in app._slots.items() if f is not None})
+
+    app._rest_of_set = rest_of_set
+
+    async def scenario():
+        app._new_frame = asyncio.Event()
+        app._new_frame.set()  # stale: set by the frame the last set took
+        app._slots = {front: None, left: None}
+        app.camera_states = {front: CameraState.STREAMING.value, left: CameraState.STREAMING.value}
+        task = asyncio.ensure_future(app._next_set())
+        for _ in range(3):
+            await asyncio.sleep(0)
+        assert not task.done() and waits == []  # no set, and no wait for its rest, without a frame
+        app._slots[left] = DepthFrame(left, np.zeros((4, 4), np.uint16), 0.001, np.eye(3), t_capture=1.0)
+        app._new_frame.set()
+        frames = await asyncio.wait_for(task, 5.0)  # the guard only
+        return [f.camera for f in frames]
+
+    assert asyncio.run(scenario()) == [left]
+    assert waits == [{left}]  # the wait for the rest began with the first frame
+    assert app._slots == {front: None, left: None}  # taken out of the slots
+
+
 def test_waiting_for_the_other_cameras_frame_gives_way_to_shutdown():
     """Cancelled at the moment a frame arrives, the wait for the rest of a set ends cancelled (an
     asyncio.wait_for there swallowed the cancellation on Python 3.8, and the app's shutdown then

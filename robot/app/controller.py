@@ -435,14 +435,7 @@ class RobotApp:
         pose at its own capture time: unsynchronized cameras are up to a frame period apart."""
         loop = self._loop
         while True:
-            await self._new_frame.wait()
-            self._new_frame.clear()
-            await self._rest_of_set()
-            frames = [f for f in (self._slots.get(name) for name in list(self._slots)) if f is not None]
-            for frame in frames:
-                self._slots[frame.camera] = None
-            if not frames:
-                continue
+            frames = await self._next_set()
             # The protective stop sees every frame, with the pose if there is one; the localizer
             # only once there is a pose to refine.
             localize = self.core.initialized and self.localizer is not None
@@ -483,6 +476,25 @@ class RobotApp:
                 if labels is not None:
                     self.live_view.publish_roi(frame.t_capture, name, labels)
                     self.recorder.write_roi(frame.t_capture, name, labels)
+
+    async def _next_set(self) -> List[DepthFrame]:
+        """The next set of frames, taken out of their slots: from the first frame to arrive, those
+        of the other streaming cameras that follow within ``_rest_of_set``'s wait."""
+        while True:
+            await self._new_frame.wait()
+            self._new_frame.clear()
+            # The frame that completed the last set also set the event: with every slot empty there
+            # is nothing to take yet, and a wait for the rest begun now would run out before the
+            # next first frame had a partner (the set split into single frames, each its own
+            # executor hop and fusion step).
+            if all(f is None for f in self._slots.values()):
+                continue
+            await self._rest_of_set()
+            frames = [f for f in (self._slots.get(name) for name in list(self._slots)) if f is not None]
+            for frame in frames:
+                self._slots[frame.camera] = None
+            if frames:
+                return frames
 
     async def _rest_of_set(self) -> None:
         """Wait for the other streaming cameras' frames, at most half a frame period after the first:
