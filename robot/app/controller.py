@@ -7,7 +7,8 @@ Threads and tasks:
   counted as dropped (drop-oldest: localizing an old frame is wasted work);
 - one localization worker thread (a single-thread executor) runs the CPU-heavy localizer, so the
   control loop keeps its period; the fused result comes back to the loop;
-- the chassis driver's reader thread posts odometry to the loop;
+- the chassis driver's reader thread posts odometry to the loop, which fuses each sample as the
+  driver hands it over (the odometry queue's listener, no task per sample);
 - the control task ticks at ``control.rate`` on absolute deadlines and is the only sender of
   wheel commands, the only source of the systemd watchdog ping, and the place health is applied.
 
@@ -35,7 +36,7 @@ import numpy as np
 
 from drivers.camera.base import CameraDriver, CameraState
 from drivers.camera.realsense_imu import yaw_rate_robot
-from drivers.chassis.base import Chassis, LinkState
+from drivers.chassis.base import Chassis, LinkState, OdometryQueue
 from drivers.chassis.encoders import quantisation_variance
 from robot.app import sd_notify
 from robot.app.calibration_store import CalibrationStore
@@ -43,7 +44,7 @@ from robot.app.operator import remote_services
 from robot.app.pose_store import PoseStore
 from robot.base.errors import DriverError
 from robot.base.frames import FrameCheck
-from robot.base.samples import DepthFrame
+from robot.base.samples import DepthFrame, WheelOdometry
 from robot.config import RobotConfig
 from robot.config.calibration import calibrated_frame, error_model_note
 from robot.config.dump import effective_config_dict
@@ -136,6 +137,7 @@ class RobotApp:
         self._stop: Optional[asyncio.Event] = None
         self._new_frame: Optional[asyncio.Event] = None
         self._slots: Dict[str, Optional[DepthFrame]] = {}
+        self._odometry_queue: Optional[OdometryQueue] = None  # while its listener is self._odometry
         self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="localize")
         self._watchdog = sd_notify.WatchdogPinger()
         self._stall_control_until = 0.0  # test hook: the control task sleeps through its ticks
@@ -236,8 +238,9 @@ class RobotApp:
             self.live_view.publish_static_transforms(time.monotonic(), camera_mounts(self.robot.cameras))
             if self.localizer is not None:  # label images cost memory: only for a view or a recording
                 self.localizer.keep_roi_labels = self.live_view.active or self.recorder.active
-            tasks = [self._loop.create_task(self._odometry_task(), name="odometry"),
-                     self._loop.create_task(self._control_task(), name="control"),
+            self._odometry_queue = self.chassis.odometry_queue()
+            self._odometry_queue.set_listener(self._odometry)
+            tasks = [self._loop.create_task(self._control_task(), name="control"),
                      self._loop.create_task(self._status_task(), name="status")]
             if self.localizer is not None:
                 tasks.append(self._loop.create_task(self._localization_task(), name="localization"))
@@ -338,6 +341,7 @@ class RobotApp:
                 await service.stop()
             except Exception as e:  # noqa: PERF203 - shutdown must go on
                 log.error("stopping %s: %s", type(service).__name__, e)
+        self._stop_odometry()  # with the tasks: none of the core's inputs is taken after this
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -418,15 +422,25 @@ class RobotApp:
 
     # -- tasks ----------------------------------------------------------------------------------
 
-    async def _odometry_task(self) -> None:
-        q = self.chassis.odometry_queue()
-        while True:
-            odo = await q.get()
+    def _odometry(self, odo: WheelOdometry) -> None:
+        """Each wheel odometry sample, on the loop as the chassis driver receives it (its queue's
+        listener: a task woken per sample cost a loop iteration a hundred times a second)."""
+        try:
             self.stats.odometry += 1
             self.core.on_odometry(odo, quantisation_variance(self.robot.chassis.ticks_per_rev, odo.dt))
             self.odom.update(odo)
             self._record("odometry", odo.t, functools.partial(channels.odometry_message, odo.t, odo.speeds, odo.angles,
                                                               odo.dt, odo.t_board))
+        except Exception:
+            # As when this was a task that died: no more odometry is fused (the pose goes stale and
+            # the control tick stops the robot), and the driver's message handling goes on.
+            log.exception("wheel odometry: handling a sample failed; odometry is no longer fused")
+            self._stop_odometry()
+
+    def _stop_odometry(self) -> None:
+        if self._odometry_queue is not None:
+            self._odometry_queue.set_listener(None)
+            self._odometry_queue = None
 
     async def _localization_task(self) -> None:
         """The frames of all cameras are handled as one set: one hop to the worker (obstacle scans
