@@ -282,3 +282,23 @@ def test_waiting_for_the_other_cameras_frame_gives_way_to_shutdown():
         return False
 
     assert asyncio.run(scenario()), "the cancellation was swallowed"
+
+
+def test_the_ticks_wheel_speeds_are_the_kinematics_limit_bit_for_bit():
+    """The control tick turns the command into wheel speeds in floats after the kinematics'
+    inverse: the same speeds as ``MecanumKinematics.limit`` gives, scaled or not, and None
+    where those are not finite (the tick then refuses the command)."""
+    core = ControllerCore(ROBOT, vision=False)
+    kin, limit = core.kinematics, ROBOT.chassis.max_wheel_speed
+    rng = np.random.default_rng(5)
+    twists = [tuple(v) for v in rng.normal(0.0, 0.6, (2000, 3)).tolist()]
+    twists += [(0.0, 0.0, 0.0), (5.0, -5.0, 9.0), (-0.0, 0.0, -0.0)]
+    scaled = 0
+    for vx, vy, wz in twists:
+        ref, s = kin.limit(kin.inverse(vx, vy, wz), limit)
+        scaled += s < 1.0
+        assert core._wheels(vx, vy, wz) == tuple(float(w) for w in ref)
+    assert scaled > 100  # the scaling branch is covered
+    for bad in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, -math.inf)):
+        assert not np.isfinite(kin.limit(kin.inverse(*bad), limit)[0]).all()
+        assert core._wheels(*bad) is None
