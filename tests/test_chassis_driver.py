@@ -550,3 +550,44 @@ def test_held_batches_are_handled_in_order_as_if_posted_one_by_one():
     batches = [(1.0, ["a"]), (2.0, ["b", "c"])]
     ch._on_batches(7, batches)
     assert seen == [(7, 1.0, ["a"]), (7, 2.0, ["b", "c"])]
+
+
+def test_the_link_monitor_returns_the_loss_sends_heartbeats_and_stops_its_timer_when_cancelled():
+    """The monitor looks every tick from a timer callback: it returns the first loss reason
+    (a session marked lost, then silence), sends a heartbeat when nothing went out for
+    HEARTBEAT_PERIOD, passes an error on like the task it was, and leaves no timer behind."""
+    from drivers.chassis.session import HEARTBEAT_PERIOD
+
+    ch = SerialChassis(CFG, port="loop://")
+    sent = []
+    ch._write = lambda data: sent.append(data) or True
+
+    async def scenario():
+        loop = ch._loop = asyncio.get_running_loop()
+        s = ch._session
+        s.ready, s.lost_reason, s.last_report_rx = True, None, time.monotonic() + 3600.0
+        ch._last_tx = time.monotonic() - 2 * HEARTBEAT_PERIOD
+        task = asyncio.ensure_future(ch._monitor())
+        await until(lambda: sent, what="a heartbeat")
+        assert not task.done()
+        s.lose("the board lost the session (reset?)")
+        assert await asyncio.wait_for(task, 5.0) == "the board lost the session (reset?)"
+        s.lost_reason, s.last_report_rx = None, time.monotonic() - 10.0
+        assert (await asyncio.wait_for(ch._monitor(), 5.0)).startswith("no encoder report for")
+        s.last_report_rx = time.monotonic() + 3600.0
+
+        def broken(data):
+            raise RuntimeError("boom")
+
+        ch._write, ch._last_tx = broken, -math.inf
+        with pytest.raises(RuntimeError, match="boom"):
+            await asyncio.wait_for(ch._monitor(), 5.0)
+        ch._write = lambda data: True
+        task = asyncio.ensure_future(ch._monitor())
+        await asyncio.sleep(0.05)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return [h for h in loop._scheduled if not h.cancelled() and getattr(h._callback, "__name__", "") == "look"]
+
+    assert arun(scenario()) == []

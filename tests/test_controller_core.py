@@ -302,3 +302,65 @@ def test_the_ticks_wheel_speeds_are_the_kinematics_limit_bit_for_bit():
     for bad in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, -math.inf)):
         assert not np.isfinite(kin.limit(kin.inverse(*bad), limit)[0]).all()
         assert core._wheels(*bad) is None
+
+
+def test_the_control_tick_keeps_absolute_deadlines_without_bursts_and_stops_with_an_error():
+    """The control tick is a timer callback that schedules the next one: on absolute deadlines
+    at control.rate, at once (never in a burst) after falling behind, and no more once a tick
+    raised (the board's watchdog then stops the wheels) or the app stopped it."""
+    from robot.app.controller import RobotApp
+    from robot.maps.plane_map import load_plane_map
+
+    class Handle:
+        def __init__(self, when, cb):
+            self.when, self.cb, self.cancelled = when, cb, False
+
+        def cancel(self):
+            self.cancelled = True
+
+    class Loop:
+        def __init__(self):
+            self.now, self.handles = 100.0, []
+
+        def time(self):
+            return self.now
+
+        def call_at(self, when, cb):
+            self.handles.append(Handle(when, cb))
+            return self.handles[-1]
+
+        def call_soon(self, cb):
+            return self.call_at(None, cb)
+
+        def run_next(self, late=0.0):
+            h = self.handles.pop(0)
+            assert not h.cancelled and not self.handles
+            self.now = max(self.now, h.when or self.now) + late
+            h.cb()
+            return h.when
+
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    period = 1.0 / ROBOT.control.rate
+    ticks = []
+    app._tick = ticks.append
+    loop = app._loop = Loop()
+    app._start_control()
+    whens = [loop.run_next() for _ in range(3)]
+    assert whens == pytest.approx([100.0 + period * k for k in (1, 2, 3)], abs=1e-12) and len(ticks) == 3
+    assert loop.run_next(late=2.5 * period) == pytest.approx(100.0 + 4 * period)  # this tick ran late ...
+    assert loop.run_next() is None  # ... the next goes at once, once ...
+    # ... then a period after the moment it fell behind (100 + 6.5 periods), no catching up
+    assert loop.run_next() == pytest.approx(100.0 + 7.5 * period, abs=1e-12)
+    assert len(ticks) == 6
+    app._stop_control()
+    assert not loop.handles or loop.handles[0].cancelled
+
+    def broken(t):
+        raise RuntimeError("boom")
+
+    loop.handles.clear()
+    app._tick = broken
+    app._start_control()
+    with pytest.raises(RuntimeError):
+        loop.run_next()
+    assert loop.handles == []  # no tick after one that raised

@@ -249,19 +249,40 @@ class SerialChassis(Chassis):
                 await self._drop_port()
 
     async def _monitor(self) -> str:
-        """Wait while the link is healthy, sending heartbeats; return why it is not any more."""
+        """Wait while the link is healthy, sending heartbeats; return why it is not any more.
+
+        The look every ``tick`` is a timer callback, not a task that sleeps: a sleeping task
+        costs a future and a second loop iteration per wake-up, fifty times a second."""
         tick = max(0.005, min(0.02, self.config.link_timeout / 4.0))
         session = self._session
-        while True:
-            await asyncio.sleep(tick)
-            now = time.monotonic()
-            if session.lost_reason is not None:
-                return session.lost_reason
-            silent = session.silence(now)
-            if silent is not None:
-                return silent
-            if now - self._last_tx > HEARTBEAT_PERIOD:
-                self._write(session.frame(Heartbeat()))
+        loop = self._loop
+        lost: asyncio.Future = loop.create_future()
+        timer: List[asyncio.TimerHandle] = []
+
+        def look() -> None:
+            if lost.done():
+                return
+            try:
+                now = time.monotonic()
+                if session.lost_reason is not None:
+                    lost.set_result(session.lost_reason)
+                    return
+                silent = session.silence(now)
+                if silent is not None:
+                    lost.set_result(silent)
+                    return
+                if now - self._last_tx > HEARTBEAT_PERIOD:
+                    self._write(session.frame(Heartbeat()))
+            except Exception as e:  # raised out of _monitor, as from the task that slept here
+                lost.set_exception(e)
+                return
+            timer[0] = loop.call_later(tick, look)
+
+        timer.append(loop.call_later(tick, look))
+        try:
+            return await lost
+        finally:
+            timer[0].cancel()
 
     async def _open_and_handshake(self) -> None:
         self._state = LinkState.CONNECTING

@@ -9,13 +9,14 @@ Threads and tasks:
   control loop keeps its period; the fused result comes back to the loop;
 - the chassis driver's reader thread posts odometry to the loop, which fuses each sample as the
   driver hands it over (the odometry queue's listener, no task per sample);
-- the control task ticks at ``control.rate`` on absolute deadlines and is the only sender of
-  wheel commands, the only source of the systemd watchdog ping, and the place health is applied.
+- the control tick (a timer callback that schedules the next) runs at ``control.rate`` on
+  absolute deadlines and is the only sender of wheel commands, the only source of the systemd
+  watchdog ping, and the place health is applied.
 
 Operator: SIGUSR1 pauses the path (brake within the limits and hold), SIGUSR2 resumes it
 (``systemctl kill -s SIGUSR1 robot-controller``).
 
-Shutdown (SIGINT/SIGTERM, the mission's end, or ``request_stop``): the control task stops, the
+Shutdown (SIGINT/SIGTERM, the mission's end, or ``request_stop``): the control tick stops, the
 wheels get STOP (the board ACKs it), cameras stop, the pose is saved, the recording is closed.
 """
 
@@ -138,9 +139,12 @@ class RobotApp:
         self._new_frame: Optional[asyncio.Event] = None
         self._slots: Dict[str, Optional[DepthFrame]] = {}
         self._odometry_queue: Optional[OdometryQueue] = None  # while its listener is self._odometry
+        self._control_timer: Optional[asyncio.Handle] = None  # the next control tick while ticking
+        self._control_period = 0.0
+        self._control_next = 0.0
         self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="localize")
         self._watchdog = sd_notify.WatchdogPinger()
-        self._stall_control_until = 0.0  # test hook: the control task sleeps through its ticks
+        self._stall_control_until = 0.0  # test hook: the control tick sleeps through its ticks
         self.last_output = None
         self._record_seq = 0
         self._fusion_steps = 0  # sets of frames fused, one filter update each
@@ -193,7 +197,7 @@ class RobotApp:
         log.info("pose set to (%.3f, %.3f, %.1f deg) by %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     def stall_control_loop(self, seconds: float) -> None:
-        """Test hook: make the control task miss its ticks (a hung loop) for ``seconds``."""
+        """Test hook: make the control tick miss its ticks (a hung loop) for ``seconds``."""
         self._stall_control_until = time.monotonic() + seconds
 
     async def run(self) -> int:
@@ -240,8 +244,8 @@ class RobotApp:
                 self.localizer.keep_roi_labels = self.live_view.active or self.recorder.active
             self._odometry_queue = self.chassis.odometry_queue()
             self._odometry_queue.set_listener(self._odometry)
-            tasks = [self._loop.create_task(self._control_task(), name="control"),
-                     self._loop.create_task(self._status_task(), name="status")]
+            self._start_control()
+            tasks = [self._loop.create_task(self._status_task(), name="status")]
             if self.localizer is not None:
                 tasks.append(self._loop.create_task(self._localization_task(), name="localization"))
                 tasks.append(self._loop.create_task(self._recovery_task(), name="recovery"))
@@ -341,7 +345,8 @@ class RobotApp:
                 await service.stop()
             except Exception as e:  # noqa: PERF203 - shutdown must go on
                 log.error("stopping %s: %s", type(service).__name__, e)
-        self._stop_odometry()  # with the tasks: none of the core's inputs is taken after this
+        self._stop_control()  # with the tasks: no tick and none of the core's inputs after this
+        self._stop_odometry()
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -609,21 +614,39 @@ class RobotApp:
         except Exception as e:  # a bad frame must not kill the worker; its camera's scan just ages out
             log.warning("camera %s frame %d: obstacle scan failed: %s", frame.camera, frame.frame_number, e)
 
-    async def _control_task(self) -> None:
+    def _start_control(self) -> None:
+        """Tick at ``control.rate`` on absolute deadlines. Each tick is a timer callback that
+        schedules the next, not a task that sleeps: a sleeping task costs a future and a second
+        loop iteration per tick. A tick that raises schedules no more (as the task died with
+        it): the board's watchdog then stops the wheels and systemd's the process."""
+        self._control_period = 1.0 / self.robot.control.rate
+        self._control_next = self._loop.time()
+        self._schedule_tick()
+
+    def _schedule_tick(self) -> None:
         loop = self._loop
-        period = 1.0 / self.robot.control.rate
-        next_t = loop.time()
-        while True:
-            next_t += period
-            delay = next_t - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            elif delay < -period:
-                next_t = loop.time()  # fell behind by more than a tick: do not burst to catch up
-            if time.monotonic() < self._stall_control_until:
-                time.sleep(period)  # simulate a hung loop: block the event loop itself
-                continue
+        period = self._control_period
+        self._control_next += period
+        delay = self._control_next - loop.time()
+        if delay > 0:
+            self._control_timer = loop.call_at(self._control_next, self._control_tick)
+            return
+        if delay < -period:
+            self._control_next = loop.time()  # fell behind by more than a tick: do not burst to catch up
+        self._control_timer = loop.call_soon(self._control_tick)
+
+    def _control_tick(self) -> None:
+        self._control_timer = None
+        if time.monotonic() < self._stall_control_until:
+            time.sleep(self._control_period)  # simulate a hung loop: block the event loop itself
+        else:
             self._tick(time.monotonic())
+        self._schedule_tick()
+
+    def _stop_control(self) -> None:
+        if self._control_timer is not None:
+            self._control_timer.cancel()
+            self._control_timer = None
 
     def _tick(self, t: float) -> None:
         ticks = self.stats.tick_times
