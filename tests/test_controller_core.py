@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -178,110 +180,142 @@ def test_one_fusion_step_for_the_frames_of_both_cameras_fuses_what_one_at_a_time
     assert math.hypot(pa[0] - truth[0], pa[1] - truth[1]) < 0.003  # and both did correct the 13 mm start error
 
 
-def test_the_app_takes_the_frames_of_all_streaming_cameras_as_one_set():
-    """After a camera's frame the localization task waits for the other streaming cameras' (at
-    most half a frame period), never for a camera that is not streaming."""
-    import asyncio
+def _pipeline_app():
+    """A RobotApp whose localization pipeline runs on the current loop with a scripted worker:
+    ``worker.sets`` holds (the cameras of each set sent, its future), completed by the test."""
+    import concurrent.futures
 
     from drivers.camera.base import CameraState
     from robot.app.controller import RobotApp
-    from robot.base.samples import DepthFrame
     from robot.maps.plane_map import load_plane_map
 
-    arena = load_plane_map("config/maps/paper_arena.yaml")
-    app = RobotApp(ROBOT, arena, [], None)
-    front, left = (c.name for c in ROBOT.cameras)
+    class Worker:
+        def __init__(self):
+            self.sets = []
 
-    def frame(name):
-        return DepthFrame(name, np.zeros((4, 4), np.uint16), 0.001, np.eye(3), t_capture=0.0, frame_number=1)
-
-    async def scenario(left_state, deliver_left):
-        app._new_frame = asyncio.Event()
-        app._slots = {front: frame(front), left: None}
-        app.camera_states = {front: CameraState.STREAMING.value, left: left_state}
-        loop = asyncio.get_running_loop()
-        if deliver_left:
-            def arrive():
-                app._slots[left] = frame(left)
-                app._new_frame.set()
-            loop.call_soon(arrive)
-        await asyncio.wait_for(app._rest_of_set(), 5.0)  # the guard only: half a period is 17 ms
-        return {name for name, f in app._slots.items() if f is not None}
-
-    assert asyncio.run(scenario(CameraState.STREAMING.value, True)) == {front, left}
-    assert asyncio.run(scenario(CameraState.STALLED.value, False)) == {front}  # not waited for
-    assert asyncio.run(scenario(CameraState.STREAMING.value, False)) == {front}  # waited, then alone
-
-
-def test_a_set_is_timed_from_its_first_frame_not_from_the_last_sets_wake_up():
-    """The frame that completed the last set leaves the event set: the next wait must not start
-    with every slot empty (its half-period wait would then run out before the next first frame
-    met its partner, and each set split into single frames, one executor hop and fusion each)."""
-    import asyncio
-
-    from drivers.camera.base import CameraState
-    from robot.app.controller import RobotApp
-    from robot.base.samples import DepthFrame
-    from robot.maps.plane_map import load_plane_map
+        def submit(self, fn, frames, coarse, localize):
+            self.sets.append(([f.camera for f in frames], concurrent.futures.Future()))
+            return self.sets[-1][1]
 
     app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    app._executor = Worker()
+    app._loop = asyncio.get_running_loop()
+    app._slots = {c.name: None for c in ROBOT.cameras}
+    app.camera_states = {c.name: CameraState.STREAMING.value for c in ROBOT.cameras}
+    app._start_localization()
+    return app, app._executor
+
+
+def _frame(name):
+    from robot.base.samples import DepthFrame
+
+    K = np.array([[400.0, 0.0, 8.0], [0.0, 400.0, 8.0], [0.0, 0.0, 1.0]])
+    return DepthFrame(name, np.zeros((16, 16), np.uint16), 0.001, K, t_capture=time.monotonic(), frame_number=1)
+
+
+async def _settle():
+    for _ in range(3):
+        await asyncio.sleep(0)
+
+
+def test_the_app_takes_the_frames_of_all_streaming_cameras_as_one_set():
+    """After a camera's frame the pipeline waits for the other streaming cameras' (at most half a
+    frame period), never for a camera that is not streaming, and sends the set to the worker once."""
+    from drivers.camera.base import CameraState
+
     front, left = (c.name for c in ROBOT.cameras)
-    waits = []
 
-    async def rest_of_set():
-        waits.append({name for name, f in app._slots.items() if f is not None})
+    async def both():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        assert worker.sets == [] and app._set_timer is not None  # waits for the left camera
+        app._frame_arrived(_frame(left))
+        assert [names for names, _ in worker.sets] == [[front, left]] and app._set_timer is None
+        assert app._slots == {front: None, left: None}
 
-    app._rest_of_set = rest_of_set
+    async def stalled():
+        app, worker = _pipeline_app()
+        app.camera_states[left] = CameraState.STALLED.value
+        app._frame_arrived(_frame(front))
+        assert [names for names, _ in worker.sets] == [[front]]  # not waited for
+
+    async def never():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        for _ in range(500):  # the guard only: half a period is 17 ms
+            if worker.sets:
+                break
+            await asyncio.sleep(0.01)
+        assert [names for names, _ in worker.sets] == [[front]]  # waited, then alone
+
+    for scenario in (both, stalled, never):
+        asyncio.run(scenario())
+
+
+def test_frames_that_come_while_the_worker_is_busy_make_the_next_set_once_it_is_free():
+    """One set at a time in the worker: frames arriving meanwhile wait in their slots (a newer one
+    replaces an older), and the next set is judged when the worker's result is back, complete or
+    with the wait for the rest starting then."""
+    front, left = (c.name for c in ROBOT.cameras)
 
     async def scenario():
-        app._new_frame = asyncio.Event()
-        app._new_frame.set()  # stale: set by the frame the last set took
-        app._slots = {front: None, left: None}
-        app.camera_states = {front: CameraState.STREAMING.value, left: CameraState.STREAMING.value}
-        task = asyncio.ensure_future(app._next_set())
-        for _ in range(3):
-            await asyncio.sleep(0)
-        assert not task.done() and waits == []  # no set, and no wait for its rest, without a frame
-        app._slots[left] = DepthFrame(left, np.zeros((4, 4), np.uint16), 0.001, np.eye(3), t_capture=1.0)
-        app._new_frame.set()
-        frames = await asyncio.wait_for(task, 5.0)  # the guard only
-        return [f.camera for f in frames]
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        app._frame_arrived(_frame(front))  # the worker has the first set
+        app._frame_arrived(_frame(front))  # replaces the one before
+        assert len(worker.sets) == 1 and app._set_timer is None and app.stats.frames_dropped[front] == 1
+        worker.sets[0][1].set_result([])
+        await _settle()
+        assert len(worker.sets) == 1 and app._set_timer is not None  # the left frame is waited for from now
+        app._frame_arrived(_frame(left))
+        assert [names for names, _ in worker.sets] == [[front, left], [front, left]]
+        worker.sets[1][1].set_result([])
+        await _settle()
+        assert not app._set_in_worker and app._set_timer is None and len(worker.sets) == 2  # nothing waiting
 
-    assert asyncio.run(scenario()) == [left]
-    assert waits == [{left}]  # the wait for the rest began with the first frame
-    assert app._slots == {front: None, left: None}  # taken out of the slots
+    asyncio.run(scenario())
 
 
-def test_waiting_for_the_other_cameras_frame_gives_way_to_shutdown():
-    """Cancelled at the moment a frame arrives, the wait for the rest of a set ends cancelled (an
-    asyncio.wait_for there swallowed the cancellation on Python 3.8, and the app's shutdown then
-    waited for ever on a localization task that had gone on)."""
-    import asyncio
-
-    from drivers.camera.base import CameraState
-    from robot.app.controller import RobotApp
-    from robot.base.samples import DepthFrame
-    from robot.maps.plane_map import load_plane_map
-
-    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+def test_the_pipeline_stops_with_the_app_and_after_an_error(caplog):
+    """Stopped (shutdown), the wait for the rest of a set ends and a set in the worker is not
+    fused; an error in handling a set ends the pipeline as it ended the task it replaces (the
+    protective stop's scans then age out)."""
     front, left = (c.name for c in ROBOT.cameras)
 
-    async def scenario() -> bool:
-        app._loop = asyncio.get_running_loop()
-        app._new_frame = asyncio.Event()
-        app._slots = {front: DepthFrame(front, np.zeros((4, 4), np.uint16), 0.001, np.eye(3)), left: None}
-        app.camera_states = {front: CameraState.STREAMING.value, left: CameraState.STREAMING.value}
-        task = asyncio.ensure_future(app._rest_of_set())
-        await asyncio.sleep(0)  # it waits now
-        app._new_frame.set()  # a frame arrives ...
-        task.cancel()  # ... as the app shuts down
-        try:
-            await asyncio.wait_for(task, 5.0)  # the guard only
-        except asyncio.CancelledError:
-            return True
-        return False
+    async def stop_while_waiting():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        timer = app._set_timer
+        app._stop_localization()
+        assert timer.cancelled() and app._set_timer is None
+        app._frame_arrived(_frame(left))
+        assert worker.sets == []
 
-    assert asyncio.run(scenario()), "the cancellation was swallowed"
+    async def stop_while_in_worker():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        app._stop_localization()
+        fused = []
+        app._fuse_set = lambda *args: fused.append(args)
+        worker.sets[0][1].set_result([])
+        await _settle()
+        assert fused == [] and not app._set_in_worker
+
+    async def error():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        worker.sets[0][1].set_exception(RuntimeError("boom"))
+        await _settle()
+        assert not app._sets_running and "no more frames are localized" in caplog.text
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        assert len(worker.sets) == 1
+
+    for scenario in (stop_while_waiting, stop_while_in_worker, error):
+        asyncio.run(scenario())
 
 
 def test_the_ticks_wheel_speeds_are_the_kinematics_limit_bit_for_bit():
@@ -300,7 +334,8 @@ def test_the_ticks_wheel_speeds_are_the_kinematics_limit_bit_for_bit():
         assert core._wheels(vx, vy, wz) == tuple(float(w) for w in ref)
     assert scaled > 100  # the scaling branch is covered
     for bad in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, -math.inf)):
-        assert not np.isfinite(kin.limit(kin.inverse(*bad), limit)[0]).all()
+        with np.errstate(invalid="ignore"):
+            assert not np.isfinite(kin.limit(kin.inverse(*bad), limit)[0]).all()
         assert core._wheels(*bad) is None
 
 

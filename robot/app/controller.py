@@ -136,7 +136,10 @@ class RobotApp:
         self.camera_states: Dict[str, str] = {c.name: CameraState.STOPPED.value for c in self.cameras}
         self._loop: Optional[asyncio.AbstractEventLoop] = None
         self._stop: Optional[asyncio.Event] = None
-        self._new_frame: Optional[asyncio.Event] = None
+        # The localization pipeline: running, a set in the worker, the wait for the rest of a set.
+        self._sets_running = False
+        self._set_in_worker = False
+        self._set_timer: Optional[asyncio.TimerHandle] = None
         self._slots: Dict[str, Optional[DepthFrame]] = {}
         self._odometry_queue: Optional[OdometryQueue] = None  # while its listener is self._odometry
         self._control_timer: Optional[asyncio.Handle] = None  # the next control tick while ticking
@@ -204,7 +207,6 @@ class RobotApp:
         """Run until stopped; 0 on a normal end (path done, signal), 1 on a failure at start."""
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        self._new_frame = asyncio.Event()
         sys.setswitchinterval(GIL_SWITCH_INTERVAL)
         if self.options.install_signal_handlers:
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -247,7 +249,7 @@ class RobotApp:
             self._start_control()
             tasks = [self._loop.create_task(self._status_task(), name="status")]
             if self.localizer is not None:
-                tasks.append(self._loop.create_task(self._localization_task(), name="localization"))
+                self._start_localization()
                 tasks.append(self._loop.create_task(self._recovery_task(), name="recovery"))
             if self.options.remote:
                 self.services += remote_services(self)
@@ -347,6 +349,7 @@ class RobotApp:
                 log.error("stopping %s: %s", type(service).__name__, e)
         self._stop_control()  # with the tasks: no tick and none of the core's inputs after this
         self._stop_odometry()
+        self._stop_localization()
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -423,7 +426,7 @@ class RobotApp:
             self.stats.frames_dropped[frame.camera] = self.stats.frames_dropped.get(frame.camera, 0) + 1
         self._slots[frame.camera] = frame
         self.latest_frames[frame.camera] = frame
-        self._new_frame.set()
+        self._consider_set()
 
     # -- tasks ----------------------------------------------------------------------------------
 
@@ -447,95 +450,127 @@ class RobotApp:
             self._odometry_queue.set_listener(None)
             self._odometry_queue = None
 
-    async def _localization_task(self) -> None:
-        """The frames of all cameras are handled as one set: one hop to the worker (obstacle scans
-        and localizations) and one fusion step per set, so the filter's history is replayed once
-        per set rather than once per camera. Each frame is still localized alone, from the coarse
-        pose at its own capture time: unsynchronized cameras are up to a frame period apart."""
-        loop = self._loop
-        while True:
-            frames = await self._next_set()
-            # The protective stop sees every frame, with the pose if there is one; the localizer
-            # only once there is a pose to refine.
-            localize = self.core.initialized and self.localizer is not None
-            coarse = [self.core.coarse_pose(f.t_capture) if self.core.initialized else None for f in frames]
-            for frame in frames:
-                self.live_view.publish_depth(frame.t_capture, frame)
-                if localize:
-                    self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
-            outcomes = await loop.run_in_executor(self._executor, self._process_frames, frames, coarse, localize)
-            if not localize:
-                continue
-            done = []
-            for frame, prior, result in zip(frames, coarse, outcomes):
-                if isinstance(result, Exception):  # a bad frame is reported and skipped, never fused
-                    log.warning("camera %s frame %d: localization failed: %s", frame.camera, frame.frame_number, result)
-                    continue
-                self.stats.localizations += 1
-                self.stats.localize_ms.append(result.ms)
-                done.append((frame, prior, result))
-            if len(self.stats.localize_ms) > 10000:
-                del self.stats.localize_ms[:5000]
-            if not done:
-                continue
-            reports = self.core.on_localizations([(result, frame.t_capture, frame.camera) for frame, _, result in done])
-            self._fusion_steps += 1
-            for (frame, ((x, y, phi), P), result), report in zip(done, reports):
-                name = frame.camera
-                # everything replay needs to redo this localization bit for bit, and what it gave
-                self._record("planes", frame.t_capture, functools.partial(channels.planes_message,
-                    frame.t_capture, name, result.planes, frame_number=frame.frame_number, method=self.options.method,
-                    coarse=(x, y, phi), coarse_cov=P, status=result.status, accepted=report.accepted,
-                    rejected=report.rejected, measurements=result.measurements, fusion_step=self._fusion_steps))
-                self.live_view.publish_planes(frame.t_capture, name, result.planes)
-                if self.recorder.active:
-                    self.recorder.write(channels.TOPIC_PLANE_FITS, frame.t_capture, channels.plane_fits_message(
-                        frame.t_capture, name, result.planes, self.plane_map))
-                labels = self.localizer.last_roi_labels.get(name)
-                if labels is not None:
-                    self.live_view.publish_roi(frame.t_capture, name, labels)
-                    self.recorder.write_roi(frame.t_capture, name, labels)
+    # -- the localization pipeline ---------------------------------------------------------------
+    #
+    # The frames of all cameras are handled as one set: one hop to the worker (obstacle scans and
+    # localizations) and one fusion step per set, so the filter's history is replayed once per set
+    # rather than once per camera. Each frame is still localized alone, from the coarse pose at its
+    # own capture time: unsynchronized cameras are up to a frame period apart. The pipeline is
+    # callbacks on the loop, not a task: a frame's arrival, the end of the wait for the rest of a
+    # set and the worker's result each run it on in the loop iteration that brought them (a task
+    # woke one iteration later, and each iteration gives up and retakes the GIL beside the worker).
 
-    async def _next_set(self) -> List[DepthFrame]:
-        """The next set of frames, taken out of their slots: from the first frame to arrive, those
-        of the other streaming cameras that follow within ``_rest_of_set``'s wait."""
-        while True:
-            await self._new_frame.wait()
-            self._new_frame.clear()
-            # The frame that completed the last set also set the event: with every slot empty there
-            # is nothing to take yet, and a wait for the rest begun now would run out before the
-            # next first frame had a partner (the set split into single frames, each its own
-            # executor hop and fusion step).
-            if all(f is None for f in self._slots.values()):
-                continue
-            await self._rest_of_set()
-            frames = [f for f in (self._slots.get(name) for name in list(self._slots)) if f is not None]
-            for frame in frames:
-                self._slots[frame.camera] = None
-            if frames:
-                return frames
+    def _start_localization(self) -> None:
+        self._sets_running = True
+        self._consider_set()  # frames that came before
 
-    async def _rest_of_set(self) -> None:
-        """Wait for the other streaming cameras' frames, at most half a frame period after the first:
-        unsynchronized cameras deliver at any phase, and the protective stop's reaction time must
-        not wait for a camera that has stalled."""
-        wait = 0.5 / max(c.fps for c in self.robot.cameras) if self.robot.cameras else 0.0
-        deadline = time.monotonic() + wait
-        while True:
-            missing = [name for name, frame in self._slots.items()
-                       if frame is None and self.camera_states.get(name) == _STREAMING]
-            left = deadline - time.monotonic()
-            if not missing or left <= 0:
-                return
-            # A timer sets the event at the deadline; no asyncio.wait_for, which on Python 3.8 can
-            # swallow the task's cancellation when the event is set at the same moment (the
-            # shutdown then waited for ever on a task that had gone on to the next set).
-            self._new_frame.clear()
-            timer = asyncio.get_running_loop().call_later(left, self._new_frame.set)
-            try:
-                await self._new_frame.wait()
-            finally:
-                timer.cancel()
+    def _stop_localization(self) -> None:
+        """No set is sent after this, and the result of one in the worker is dropped."""
+        self._sets_running = False
+        if self._set_timer is not None:
+            self._set_timer.cancel()
+            self._set_timer = None
+
+    def _consider_set(self) -> None:
+        """A frame arrived, or the worker is free: send the set when the other streaming cameras'
+        frames are in, else wait for them at most half a frame period from now (unsynchronized
+        cameras deliver at any phase, and the protective stop's reaction time must not wait for a
+        camera that has stalled). A camera that is not streaming is not waited for."""
+        if not self._sets_running or self._set_in_worker or all(f is None for f in self._slots.values()):
+            return
+        missing = [name for name, frame in self._slots.items()
+                   if frame is None and self.camera_states.get(name) == _STREAMING]
+        if not missing:
+            self._send_set()
+        elif self._set_timer is None:
+            wait = 0.5 / max(c.fps for c in self.robot.cameras) if self.robot.cameras else 0.0
+            if wait > 0.0:
+                self._set_timer = self._loop.call_later(wait, self._set_wait_over)
+            else:
+                self._send_set()
+
+    def _set_wait_over(self) -> None:
+        self._set_timer = None
+        if self._sets_running and not self._set_in_worker:
+            self._send_set()
+
+    def _send_set(self) -> None:
+        """Take the frames out of their slots and hand them to the worker."""
+        if self._set_timer is not None:
+            self._set_timer.cancel()
+            self._set_timer = None
+        frames = [f for f in (self._slots.get(name) for name in list(self._slots)) if f is not None]
+        for frame in frames:
+            self._slots[frame.camera] = None
+        if not frames:
+            return
+        # The protective stop sees every frame, with the pose if there is one; the localizer
+        # only once there is a pose to refine.
+        localize = self.core.initialized and self.localizer is not None
+        coarse = [self.core.coarse_pose(f.t_capture) if self.core.initialized else None for f in frames]
+        for frame in frames:
+            self.live_view.publish_depth(frame.t_capture, frame)
+            if localize:
+                self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
+        self._set_in_worker = True
+        work = self._executor.submit(self._process_frames, frames, coarse, localize)
+        work.add_done_callback(functools.partial(self._set_processed_threadsafe, frames, coarse, localize))
+
+    def _set_processed_threadsafe(self, frames: List[DepthFrame], coarse: list, localize: bool,
+                                  work: concurrent.futures.Future) -> None:
+        try:
+            self._loop.call_soon_threadsafe(self._set_processed, frames, coarse, localize, work)
+        except RuntimeError:
+            pass  # the loop is closed: shutting down
+
+    def _set_processed(self, frames: List[DepthFrame], coarse: list, localize: bool,
+                       work: concurrent.futures.Future) -> None:
+        self._set_in_worker = False
+        if not self._sets_running:
+            return  # stopped meanwhile: nothing more is fused
+        try:
+            if localize:
+                self._fuse_set(frames, coarse, work.result())
+            else:
+                work.result()
+        except Exception:
+            # As when this was a task that died: no more frames are scanned or localized (the
+            # protective stop's scans age out and it holds the robot).
+            log.exception("localization: handling a set of frames failed; no more frames are localized")
+            self._stop_localization()
+            return
+        self._consider_set()  # frames that came meanwhile
+
+    def _fuse_set(self, frames: List[DepthFrame], coarse: list, outcomes: list) -> None:
+        done = []
+        for frame, prior, result in zip(frames, coarse, outcomes):
+            if isinstance(result, Exception):  # a bad frame is reported and skipped, never fused
+                log.warning("camera %s frame %d: localization failed: %s", frame.camera, frame.frame_number, result)
+                continue
+            self.stats.localizations += 1
+            self.stats.localize_ms.append(result.ms)
+            done.append((frame, prior, result))
+        if len(self.stats.localize_ms) > 10000:
+            del self.stats.localize_ms[:5000]
+        if not done:
+            return
+        reports = self.core.on_localizations([(result, frame.t_capture, frame.camera) for frame, _, result in done])
+        self._fusion_steps += 1
+        for (frame, ((x, y, phi), P), result), report in zip(done, reports):
+            name = frame.camera
+            # everything replay needs to redo this localization bit for bit, and what it gave
+            self._record("planes", frame.t_capture, functools.partial(channels.planes_message,
+                frame.t_capture, name, result.planes, frame_number=frame.frame_number, method=self.options.method,
+                coarse=(x, y, phi), coarse_cov=P, status=result.status, accepted=report.accepted,
+                rejected=report.rejected, measurements=result.measurements, fusion_step=self._fusion_steps))
+            self.live_view.publish_planes(frame.t_capture, name, result.planes)
+            if self.recorder.active:
+                self.recorder.write(channels.TOPIC_PLANE_FITS, frame.t_capture, channels.plane_fits_message(
+                    frame.t_capture, name, result.planes, self.plane_map))
+            labels = self.localizer.last_roi_labels.get(name)
+            if labels is not None:
+                self.live_view.publish_roi(frame.t_capture, name, labels)
+                self.recorder.write_roi(frame.t_capture, name, labels)
 
     def _process_frames(self, frames: Sequence[DepthFrame], coarse: Sequence[Optional[Tuple]], localize: bool) -> list:
         """On the worker: each frame's obstacle scan, then (``localize``) its localization, or the
