@@ -84,6 +84,7 @@ class SerialChassis(Chassis):
         self.on_odometry = on_odometry
         self.on_status = on_status
         self._session = HostSession(self.config, name=self.port)
+        self._report_latency = _REPORT_WIRE_BYTES * 10.0 / self.config.baud  # s on the wire per report
         self._state = LinkState.CLOSED
         self._counters = self._session.counters  # one set of counters: the protocol's and the link's
         self._queues: List[asyncio.Queue] = []
@@ -462,7 +463,7 @@ class SerialChassis(Chassis):
         if gen != self._gen:
             return
         old_status = self._session.status
-        got = self._session.handle(msgs, t_rx, latency=_REPORT_WIRE_BYTES * 10.0 / self.config.baud)
+        got = self._session.handle(msgs, t_rx, latency=self._report_latency)
         if got.reply is not None and self._hello_wait is not None and not self._hello_wait.done():
             self._hello_wait.set_result(got.reply)
         stop_ack = self._stop_ack
@@ -479,9 +480,10 @@ class SerialChassis(Chassis):
                 log.warning("%s: the board's watchdog stopped the wheels (no fresh speed command)", self.port)
             if self.on_status is not None:
                 self.on_status(st)
-        for sample in got.odometry:
-            if self.on_odometry is not None:
-                self.on_odometry(sample)
-            for q in self._queues:
-                q.put_nowait(sample)  # full, an OdometryQueue merges its oldest samples: no tick is lost
+        if got.odometry:
+            for sample in got.odometry:
+                if self.on_odometry is not None:
+                    self.on_odometry(sample)
+                for q in self._queues:
+                    q.put_nowait(sample)  # full, an OdometryQueue merges its oldest samples: no tick is lost
             self._counters["odometry_coalesced"] = sum(q.coalesced for q in self._queues)
