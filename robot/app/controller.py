@@ -437,8 +437,9 @@ class RobotApp:
             self.stats.odometry += 1
             self.core.on_odometry(odo, quantisation_variance(self.robot.chassis.ticks_per_rev, odo.dt))
             self.odom.update(odo)
-            self._record("odometry", odo.t, functools.partial(channels.odometry_message, odo.t, odo.speeds, odo.angles,
-                                                              odo.dt, odo.t_board))
+            if self.recorder.active:
+                self._record("odometry", odo.t, functools.partial(channels.odometry_message, odo.t, odo.speeds,
+                                                                  odo.angles, odo.dt, odo.t_board))
         except Exception:
             # As when this was a task that died: no more odometry is fused (the pose goes stale and
             # the control tick stops the robot), and the driver's message handling goes on.
@@ -708,9 +709,10 @@ class RobotApp:
             self.stats.commands_withheld += 1
         self._watchdog.tick()  # only a control loop that ticks keeps systemd from restarting us
         c = out.command
-        self._record("cmd", t, functools.partial(channels.cmd_message, t, c.vx, c.vy, c.wz, out.wheels,
-                                                 sent=out.wheels is not None, state=c.state, scale=out.speed_scale,
-                                                 reason=out.reason))
+        if self.recorder.active:  # (not even the message's recipe is built for nobody)
+            self._record("cmd", t, functools.partial(channels.cmd_message, t, c.vx, c.vy, c.wz, out.wheels,
+                                                     sent=out.wheels is not None, state=c.state, scale=out.speed_scale,
+                                                     reason=out.reason))
         self.live_view.publish_cmd(t, c.vx, c.vy, c.wz, out.wheels)
         self._publish_pose(t)
         if self.options.stop_when_done and self.core.finished:
