@@ -451,7 +451,7 @@ class PoseFilter:
             ok = _all_finite(t, d, n0, n1, n2, z0, z1)
         if not ok:
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: non-finite or malformed measurement")
-        R = np.array(meas.R, dtype=float)
+        R = np.asarray(meas.R, dtype=float)  # only read: no copy
         if not _is_definite2(R):
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: R is not a positive definite 2x2 covariance")
         if math.hypot(n0, n1) < self.config.min_wall_normal:
@@ -625,25 +625,27 @@ class PoseFilter:
             return o.interval
         start = self._odom_t[i - 1] if i > 0 else self._odom_origin
         vx, vy, wz = o.twist
-        Q = [list(r) for r in o.Q]
         a = bisect.bisect_right(self._gyro_t, start)
         b = bisect.bisect_right(self._gyro_t, o.t)
-        if b > a:
-            samples = self._gyro[a:b]
-            wz_g = sum(s[0] for s in samples) / len(samples)
-            # The mean of n samples is not n times better: bias dominates, so keep the sample variance.
-            var_g = sum(s[1] for s in samples) / len(samples)
-            var_w = Q[2][2]
-            if self.config.gyro_mode == "replace" or var_w <= 0.0:
-                w = 0.0
-            else:
-                w = var_g / (var_w + var_g)  # weight of the wheels' wz
-            wz = w * wz + (1.0 - w) * wz_g
-            Q[2][0] *= w
-            Q[2][1] *= w
-            Q[0][2] *= w
-            Q[1][2] *= w
-            Q[2][2] = w * w * var_w + (1.0 - w) ** 2 * var_g
+        if b <= a:  # no gyro sample in the interval (the usual case): the wheels' twist as it came
+            o.interval = (vx, vy, wz, o.Q, o.t - start)
+            return o.interval
+        Q = [list(r) for r in o.Q]
+        samples = self._gyro[a:b]
+        wz_g = sum(s[0] for s in samples) / len(samples)
+        # The mean of n samples is not n times better: bias dominates, so keep the sample variance.
+        var_g = sum(s[1] for s in samples) / len(samples)
+        var_w = Q[2][2]
+        if self.config.gyro_mode == "replace" or var_w <= 0.0:
+            w = 0.0
+        else:
+            w = var_g / (var_w + var_g)  # weight of the wheels' wz
+        wz = w * wz + (1.0 - w) * wz_g
+        Q[2][0] *= w
+        Q[2][1] *= w
+        Q[0][2] *= w
+        Q[1][2] *= w
+        Q[2][2] = w * w * var_w + (1.0 - w) ** 2 * var_g
         o.interval = (vx, vy, wz, tuple(tuple(r) for r in Q), o.t - start)
         return o.interval
 
