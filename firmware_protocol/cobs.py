@@ -13,6 +13,21 @@ class CobsError(ValueError):
 
 def cobs_encode(data: bytes) -> bytes:
     """Encode canonically: a final run of exactly 254k non-zero bytes gets no trailing 0x01 block."""
+    data = bytes(data)
+    if len(data) < 254:
+        # Every frame of the protocol: no run reaches 254 bytes, so each run is one block (its
+        # length + 1, then its bytes) and the canonical rule never applies (what the loop below
+        # does for such data, without its bookkeeping, fifty times a second).
+        out = bytearray()
+        for part in data.split(b"\x00"):
+            out.append(len(part) + 1)
+            out += part
+        return bytes(out)
+    return _cobs_encode_blocks(data)
+
+
+def _cobs_encode_blocks(data: bytes) -> bytes:
+    """``cobs_encode`` of any length: runs of 254 non-zero bytes and more split into 0xFF blocks."""
     out = bytearray()
     parts = bytes(data).split(b"\x00")
     last = len(parts) - 1

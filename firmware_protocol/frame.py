@@ -64,9 +64,10 @@ def encode_frame(msg_id: int, seq: int, payload: bytes, version: int = PROTOCOL_
     """Wire bytes of one frame, both delimiters included."""
     if len(payload) > MAX_PAYLOAD:
         raise ValueError(f"payload of {len(payload)} bytes exceeds MAX_PAYLOAD ({MAX_PAYLOAD})")
-    for name, value in (("version", version), ("msg_id", msg_id), ("seq", seq)):
-        if not 0 <= value <= 0xFF:
-            raise ValueError(f"{name} {value} does not fit in one byte")
+    if not (0 <= version <= 0xFF and 0 <= msg_id <= 0xFF and 0 <= seq <= 0xFF):
+        for name, value in (("version", version), ("msg_id", msg_id), ("seq", seq)):
+            if not 0 <= value <= 0xFF:
+                raise ValueError(f"{name} {value} does not fit in one byte")
     body = _HEADER.pack(version, msg_id, seq) + bytes(payload)
     return DELIMITER + cobs_encode(body + _CRC.pack(crc32(body))) + DELIMITER
 

@@ -96,9 +96,13 @@ class SetWheelSpeeds(Message):
 
     @classmethod
     def from_rad_s(cls, speeds: Sequence[float], seq: int = 0) -> SetWheelSpeeds:
-        if len(speeds) != 4 or not all(math.isfinite(s) for s in speeds):
+        if len(speeds) != 4:
             raise ValueError(f"wheel speeds must be 4 finite numbers, got {list(speeds)!r}")
-        return cls(tuple(int(round(s * MRAD)) for s in speeds), seq=seq)
+        s0, s1, s2, s3 = speeds  # written out: fifty commands a second
+        if not (math.isfinite(s0) and math.isfinite(s1) and math.isfinite(s2) and math.isfinite(s3)):
+            raise ValueError(f"wheel speeds must be 4 finite numbers, got {list(speeds)!r}")
+        return cls((int(round(s0 * MRAD)), int(round(s1 * MRAD)), int(round(s2 * MRAD)), int(round(s3 * MRAD))),
+                   seq=seq)
 
     @property
     def rad_s(self) -> Tuple[float, ...]:

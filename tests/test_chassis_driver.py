@@ -483,3 +483,111 @@ def test_loopback_rehandshakes_after_a_board_reboot_with_continuous_angles():
     assert ch.reconnects == 1
     assert all(s.angles[0] >= before[-1].angles[0] - TICK for s in after)  # no jump back to the board's zero
     assert after[-1].angles[0] > before[-1].angles[0] + 1.0
+
+
+def test_the_reader_holds_batches_of_only_acks_for_the_next_batch_that_matters():
+    """The board ACKs every speed command in a frame of its own: the reader thread hands those
+    to the loop with the next batch that asks something of it (a report), or when the line goes
+    quiet, each batch with its own receive time and in order; never one wake-up per ACK. The
+    ACK of the STOP that ``close`` waits for goes at once."""
+    ch = SerialChassis(CFG, port="loop://")
+    ack = [fp.Ack(ref_id=fp.SetWheelSpeeds.MSG_ID, ref_seq=k, seq=k) for k in range(3)]
+    report = fp.EncoderReport(t_us=1000, ticks=(1, 2, 3, 4), seq=9)
+    chunks = [fp.encode(ack[0]), fp.encode(ack[1]), fp.encode(report), fp.encode(ack[2]), b""]
+
+    class Line:  # what pyserial's read gives: one chunk per read, b"" for a read that timed out
+        in_waiting = 0
+
+        def __init__(self, chunks):
+            self.chunks = list(chunks)
+
+        def read(self, n):
+            if not self.chunks:
+                stop.set()
+                return b""
+            return self.chunks.pop(0)
+
+    class Loop:
+        def __init__(self):
+            self.calls = []
+
+        def call_soon_threadsafe(self, fn, *args):
+            self.calls.append((fn.__name__, args))
+
+    def run(chunks):
+        ch._loop = Loop()
+        stop.clear()
+        ch._read_loop(Line(chunks), 1, stop)
+        return ch._loop.calls
+
+    stop = threading.Event()
+    calls = run(chunks)
+    assert [name for name, _ in calls] == ["_on_batches", "_on_batches"]
+    (_, first), (_, second) = calls
+    assert [m for _, msgs in first[1] for m in msgs] == [ack[0], ack[1], report]
+    times = [t for t, _ in first[1]]
+    assert times == sorted(times) and len(set(times)) == 3  # each batch keeps its receive time
+    assert [m for _, msgs in second[1] for m in msgs] == [ack[2]]  # the quiet line let it go
+    # a report alone goes as before, in one call
+    assert [name for name, _ in run([fp.encode(report)])] == ["_on_messages"]
+    # while close() waits for the STOP's ACK, ACKs are not held
+    ch._stop_ack = (0, None)
+    assert [name for name, _ in run([fp.encode(ack[0])])] == ["_on_messages"]
+    ch._stop_ack = None
+    # never more than MAX_HELD_ACK_BATCHES batches held
+    from drivers.chassis.serial_chassis import MAX_HELD_ACK_BATCHES
+    many = [fp.encode(fp.Ack(ref_id=2, ref_seq=k % 256, seq=k % 256)) for k in range(MAX_HELD_ACK_BATCHES + 1)]
+    calls = run(many)
+    assert [len(args[1]) for _, args in calls] == [MAX_HELD_ACK_BATCHES + 1]
+
+
+def test_held_batches_are_handled_in_order_as_if_posted_one_by_one():
+    """``_on_batches`` is ``_on_messages`` per batch: the ACK counter and the lost-frame count
+    come out as they would have."""
+    seen = []
+    ch = SerialChassis(CFG, port="loop://")
+    ch._on_messages = lambda gen, t_rx, msgs: seen.append((gen, t_rx, msgs))
+    batches = [(1.0, ["a"]), (2.0, ["b", "c"])]
+    ch._on_batches(7, batches)
+    assert seen == [(7, 1.0, ["a"]), (7, 2.0, ["b", "c"])]
+
+
+def test_the_link_monitor_returns_the_loss_sends_heartbeats_and_stops_its_timer_when_cancelled():
+    """The monitor looks every tick from a timer callback: it returns the first loss reason
+    (a session marked lost, then silence), sends a heartbeat when nothing went out for
+    HEARTBEAT_PERIOD, passes an error on like the task it was, and leaves no timer behind."""
+    from drivers.chassis.session import HEARTBEAT_PERIOD
+
+    ch = SerialChassis(CFG, port="loop://")
+    sent = []
+    ch._write = lambda data: sent.append(data) or True
+
+    async def scenario():
+        loop = ch._loop = asyncio.get_running_loop()
+        s = ch._session
+        s.ready, s.lost_reason, s.last_report_rx = True, None, time.monotonic() + 3600.0
+        ch._last_tx = time.monotonic() - 2 * HEARTBEAT_PERIOD
+        task = asyncio.ensure_future(ch._monitor())
+        await until(lambda: sent, what="a heartbeat")
+        assert not task.done()
+        s.lose("the board lost the session (reset?)")
+        assert await asyncio.wait_for(task, 5.0) == "the board lost the session (reset?)"
+        s.lost_reason, s.last_report_rx = None, time.monotonic() - 10.0
+        assert (await asyncio.wait_for(ch._monitor(), 5.0)).startswith("no encoder report for")
+        s.last_report_rx = time.monotonic() + 3600.0
+
+        def broken(data):
+            raise RuntimeError("boom")
+
+        ch._write, ch._last_tx = broken, -math.inf
+        with pytest.raises(RuntimeError, match="boom"):
+            await asyncio.wait_for(ch._monitor(), 5.0)
+        ch._write = lambda data: True
+        task = asyncio.ensure_future(ch._monitor())
+        await asyncio.sleep(0.05)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return [h for h in loop._scheduled if not h.cancelled() and getattr(h._callback, "__name__", "") == "look"]
+
+    assert arun(scenario()) == []

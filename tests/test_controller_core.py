@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
+import time
 from dataclasses import replace
 
 import numpy as np
@@ -178,68 +180,245 @@ def test_one_fusion_step_for_the_frames_of_both_cameras_fuses_what_one_at_a_time
     assert math.hypot(pa[0] - truth[0], pa[1] - truth[1]) < 0.003  # and both did correct the 13 mm start error
 
 
-def test_the_app_takes_the_frames_of_all_streaming_cameras_as_one_set():
-    """After a camera's frame the localization task waits for the other streaming cameras' (at
-    most half a frame period), never for a camera that is not streaming."""
-    import asyncio
+def _pipeline_app():
+    """A RobotApp whose localization pipeline runs on the current loop with a scripted worker:
+    ``worker.sets`` holds (the cameras of each set sent, its future), completed by the test."""
+    import concurrent.futures
 
     from drivers.camera.base import CameraState
     from robot.app.controller import RobotApp
-    from robot.base.samples import DepthFrame
     from robot.maps.plane_map import load_plane_map
 
-    arena = load_plane_map("config/maps/paper_arena.yaml")
-    app = RobotApp(ROBOT, arena, [], None)
-    front, left = (c.name for c in ROBOT.cameras)
+    class Worker:
+        def __init__(self):
+            self.sets = []
 
-    def frame(name):
-        return DepthFrame(name, np.zeros((4, 4), np.uint16), 0.001, np.eye(3), t_capture=0.0, frame_number=1)
-
-    async def scenario(left_state, deliver_left):
-        app._new_frame = asyncio.Event()
-        app._slots = {front: frame(front), left: None}
-        app.camera_states = {front: CameraState.STREAMING.value, left: left_state}
-        loop = asyncio.get_running_loop()
-        if deliver_left:
-            def arrive():
-                app._slots[left] = frame(left)
-                app._new_frame.set()
-            loop.call_soon(arrive)
-        await asyncio.wait_for(app._rest_of_set(), 5.0)  # the guard only: half a period is 17 ms
-        return {name for name, f in app._slots.items() if f is not None}
-
-    assert asyncio.run(scenario(CameraState.STREAMING.value, True)) == {front, left}
-    assert asyncio.run(scenario(CameraState.STALLED.value, False)) == {front}  # not waited for
-    assert asyncio.run(scenario(CameraState.STREAMING.value, False)) == {front}  # waited, then alone
-
-
-def test_waiting_for_the_other_cameras_frame_gives_way_to_shutdown():
-    """Cancelled at the moment a frame arrives, the wait for the rest of a set ends cancelled (an
-    asyncio.wait_for there swallowed the cancellation on Python 3.8, and the app's shutdown then
-    waited for ever on a localization task that had gone on)."""
-    import asyncio
-
-    from drivers.camera.base import CameraState
-    from robot.app.controller import RobotApp
-    from robot.base.samples import DepthFrame
-    from robot.maps.plane_map import load_plane_map
+        def submit(self, fn, frames, coarse, localize):
+            self.sets.append(([f.camera for f in frames], concurrent.futures.Future()))
+            return self.sets[-1][1]
 
     app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    app._executor = Worker()
+    app._loop = asyncio.get_running_loop()
+    app._slots = {c.name: None for c in ROBOT.cameras}
+    app.camera_states = {c.name: CameraState.STREAMING.value for c in ROBOT.cameras}
+    app._start_localization()
+    return app, app._executor
+
+
+def _frame(name):
+    from robot.base.samples import DepthFrame
+
+    K = np.array([[400.0, 0.0, 8.0], [0.0, 400.0, 8.0], [0.0, 0.0, 1.0]])
+    return DepthFrame(name, np.zeros((16, 16), np.uint16), 0.001, K, t_capture=time.monotonic(), frame_number=1)
+
+
+async def _settle():
+    for _ in range(3):
+        await asyncio.sleep(0)
+
+
+def test_the_app_takes_the_frames_of_all_streaming_cameras_as_one_set():
+    """After a camera's frame the pipeline waits for the other streaming cameras' (at most half a
+    frame period), never for a camera that is not streaming, and sends the set to the worker once."""
+    from drivers.camera.base import CameraState
+
     front, left = (c.name for c in ROBOT.cameras)
 
-    async def scenario() -> bool:
-        app._loop = asyncio.get_running_loop()
-        app._new_frame = asyncio.Event()
-        app._slots = {front: DepthFrame(front, np.zeros((4, 4), np.uint16), 0.001, np.eye(3)), left: None}
-        app.camera_states = {front: CameraState.STREAMING.value, left: CameraState.STREAMING.value}
-        task = asyncio.ensure_future(app._rest_of_set())
-        await asyncio.sleep(0)  # it waits now
-        app._new_frame.set()  # a frame arrives ...
-        task.cancel()  # ... as the app shuts down
-        try:
-            await asyncio.wait_for(task, 5.0)  # the guard only
-        except asyncio.CancelledError:
-            return True
-        return False
+    async def both():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        assert worker.sets == [] and app._set_timer is not None  # waits for the left camera
+        app._frame_arrived(_frame(left))
+        assert [names for names, _ in worker.sets] == [[front, left]] and app._set_timer is None
+        assert app._slots == {front: None, left: None}
 
-    assert asyncio.run(scenario()), "the cancellation was swallowed"
+    async def stalled():
+        app, worker = _pipeline_app()
+        app.camera_states[left] = CameraState.STALLED.value
+        app._frame_arrived(_frame(front))
+        assert [names for names, _ in worker.sets] == [[front]]  # not waited for
+
+    async def never():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        for _ in range(500):  # the guard only: half a period is 17 ms
+            if worker.sets:
+                break
+            await asyncio.sleep(0.01)
+        assert [names for names, _ in worker.sets] == [[front]]  # waited, then alone
+
+    for scenario in (both, stalled, never):
+        asyncio.run(scenario())
+
+
+def test_frames_that_come_while_the_worker_is_busy_make_the_next_set_once_it_is_free():
+    """One set at a time in the worker: frames arriving meanwhile wait in their slots (a newer one
+    replaces an older), and the next set is judged when the worker's result is back, complete or
+    with the wait for the rest starting then."""
+    front, left = (c.name for c in ROBOT.cameras)
+
+    async def scenario():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        app._frame_arrived(_frame(front))  # the worker has the first set
+        app._frame_arrived(_frame(front))  # replaces the one before
+        assert len(worker.sets) == 1 and app._set_timer is None and app.stats.frames_dropped[front] == 1
+        worker.sets[0][1].set_result([])
+        await _settle()
+        assert len(worker.sets) == 1 and app._set_timer is not None  # the left frame is waited for from now
+        app._frame_arrived(_frame(left))
+        assert [names for names, _ in worker.sets] == [[front, left], [front, left]]
+        worker.sets[1][1].set_result([])
+        await _settle()
+        assert not app._set_in_worker and app._set_timer is None and len(worker.sets) == 2  # nothing waiting
+
+    asyncio.run(scenario())
+
+
+def test_the_pipeline_stops_with_the_app_and_after_an_error(caplog):
+    """Stopped (shutdown), the wait for the rest of a set ends and a set in the worker is not
+    fused; an error in handling a set ends the pipeline as it ended the task it replaces (the
+    protective stop's scans then age out)."""
+    front, left = (c.name for c in ROBOT.cameras)
+
+    async def stop_while_waiting():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        timer = app._set_timer
+        app._stop_localization()
+        assert timer.cancelled() and app._set_timer is None
+        app._frame_arrived(_frame(left))
+        assert worker.sets == []
+
+    async def stop_while_in_worker():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        app._stop_localization()
+        fused = []
+        app._fuse_set = lambda *args: fused.append(args)
+        worker.sets[0][1].set_result([])
+        await _settle()
+        assert fused == [] and not app._set_in_worker
+
+    async def error():
+        app, worker = _pipeline_app()
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        worker.sets[0][1].set_exception(RuntimeError("boom"))
+        await _settle()
+        assert not app._sets_running and "no more frames are localized" in caplog.text
+        app._frame_arrived(_frame(front))
+        app._frame_arrived(_frame(left))
+        assert len(worker.sets) == 1
+
+    for scenario in (stop_while_waiting, stop_while_in_worker, error):
+        asyncio.run(scenario())
+
+
+def test_the_ticks_wheel_speeds_are_the_kinematics_limit_bit_for_bit():
+    """The control tick turns the command into wheel speeds in floats after the kinematics'
+    inverse: the same speeds as ``MecanumKinematics.limit`` gives, scaled or not, and None
+    where those are not finite (the tick then refuses the command)."""
+    core = ControllerCore(ROBOT, vision=False)
+    kin, limit = core.kinematics, ROBOT.chassis.max_wheel_speed
+    rng = np.random.default_rng(5)
+    twists = [tuple(v) for v in rng.normal(0.0, 0.6, (2000, 3)).tolist()]
+    twists += [(0.0, 0.0, 0.0), (5.0, -5.0, 9.0), (-0.0, 0.0, -0.0)]
+    scaled = 0
+    for vx, vy, wz in twists:
+        ref, s = kin.limit(kin.inverse(vx, vy, wz), limit)
+        scaled += s < 1.0
+        assert core._wheels(vx, vy, wz) == tuple(float(w) for w in ref)
+    assert scaled > 100  # the scaling branch is covered
+    for bad in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, -math.inf)):
+        with np.errstate(invalid="ignore"):
+            assert not np.isfinite(kin.limit(kin.inverse(*bad), limit)[0]).all()
+        assert core._wheels(*bad) is None
+
+
+def test_the_control_tick_keeps_absolute_deadlines_without_bursts_and_stops_with_an_error():
+    """The control tick is a timer callback that schedules the next one: on absolute deadlines
+    at control.rate, at once (never in a burst) after falling behind, and no more once a tick
+    raised (the board's watchdog then stops the wheels) or the app stopped it."""
+    from robot.app.controller import RobotApp
+    from robot.maps.plane_map import load_plane_map
+
+    class Handle:
+        def __init__(self, when, cb):
+            self.when, self.cb, self.cancelled = when, cb, False
+
+        def cancel(self):
+            self.cancelled = True
+
+    class Loop:
+        def __init__(self):
+            self.now, self.handles = 100.0, []
+
+        def time(self):
+            return self.now
+
+        def call_at(self, when, cb):
+            self.handles.append(Handle(when, cb))
+            return self.handles[-1]
+
+        def call_soon(self, cb):
+            return self.call_at(None, cb)
+
+        def run_next(self, late=0.0):
+            h = self.handles.pop(0)
+            assert not h.cancelled and not self.handles
+            self.now = max(self.now, h.when or self.now) + late
+            h.cb()
+            return h.when
+
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    period = 1.0 / ROBOT.control.rate
+    ticks = []
+    app._tick = ticks.append
+    loop = app._loop = Loop()
+    app._start_control()
+    whens = [loop.run_next() for _ in range(3)]
+    assert whens == pytest.approx([100.0 + period * k for k in (1, 2, 3)], abs=1e-12) and len(ticks) == 3
+    assert loop.run_next(late=2.5 * period) == pytest.approx(100.0 + 4 * period)  # this tick ran late ...
+    assert loop.run_next() is None  # ... the next goes at once, once ...
+    # ... then a period after the moment it fell behind (100 + 6.5 periods), no catching up
+    assert loop.run_next() == pytest.approx(100.0 + 7.5 * period, abs=1e-12)
+    assert len(ticks) == 6
+    app._stop_control()
+    assert not loop.handles or loop.handles[0].cancelled
+
+    def broken(t):
+        raise RuntimeError("boom")
+
+    loop.handles.clear()
+    app._tick = broken
+    app._start_control()
+    with pytest.raises(RuntimeError):
+        loop.run_next()
+    assert loop.handles == []  # no tick after one that raised
+
+
+def test_four_wheel_reports_are_differenced_as_by_the_general_path():
+    """``EncoderOdometry`` writes out the usual four-wheel report (a tuple): same samples bit for
+    bit as the general path (any sequence), across counter wraps, a backwards board clock and
+    implausible jumps."""
+    rng = np.random.default_rng(8)
+    fast = EncoderOdometry(ROBOT.chassis.ticks_per_rev, ROBOT.chassis.max_wheel_speed)
+    general = EncoderOdometry(ROBOT.chassis.ticks_per_rev, ROBOT.chassis.max_wheel_speed)
+    ticks = np.array([2**31 - 500, -2**31 + 300, 17, -5], dtype=np.int64)
+    board = 0.0
+    outs = 0
+    for k in range(3000):
+        ticks += rng.integers(-60, 61, 4)
+        if k % 500 == 250:
+            ticks[rng.integers(0, 4)] += 10**6  # faster than any wheel: refused
+        board += -0.004 if k % 700 == 350 else 0.01  # the odd clock step backwards
+        wrapped = tuple(int((v + 2**31) % 2**32 - 2**31) for v in ticks)
+        a = fast.update(wrapped, board, 100.0 + board)
+        b = general.update(list(wrapped), board, 100.0 + board)
+        assert a == b
+        outs += a is not None
+    assert fast.implausible == general.implausible >= 5 and outs > 2900

@@ -553,3 +553,34 @@ def test_the_filter_steps_are_filterpys_ekf_equations():
         ref.x[2, 0] = wrap_angle(ref.x.item(2))
         assert res.accepted and np.allclose(xf, ref.x, rtol=0, atol=1e-10)
         assert np.allclose(Pf, 0.5 * (ref.P + ref.P.T), rtol=1e-7, atol=1e-14)
+
+
+def test_odometry_covariance_as_rows_of_floats_fuses_as_the_array_does():
+    """The odometry feed passes Q as a tuple of float rows (no numpy round trip per sample): the
+    filter must come out bit for bit where the same Q as an array takes it, refuse the same bad
+    ones, and send anything that is not exactly float rows through numpy as before."""
+    rng = np.random.default_rng(11)
+    a, b = PoseFilter(), PoseFilter()
+    for f in (a, b):
+        f.set_pose(0.0, 0.5, 0.5, 0.1, np.eye(3) * 1e-4)
+    for k in range(1, 120):
+        L = rng.normal(0.0, 0.01, (3, 3))
+        Q = L @ L.T + np.eye(3) * 1e-6
+        twist = rng.normal(0.0, 0.3, 3).tolist()
+        rows = tuple(tuple(r) for r in Q.tolist())
+        ra = a.predict_twist(k * ODOM_DT, *twist, rows)
+        rb = b.predict_twist(k * ODOM_DT, *twist, Q)
+        assert ra == rb and ra.accepted
+        if k % 10 == 0:
+            m = measure("wall_south", (0.5, 0.5, 0.1), k * ODOM_DT - 0.02, rng)
+            assert a.update_plane(m) == b.update_plane(m)
+    (ta, xa, Pa), (tb, xb, Pb) = a.state(), b.state()
+    assert ta == tb and xa.tolist() == xb.tolist() and Pa.tolist() == Pb.tolist()
+    assert a.predicted(3.0)[3].tolist() == b.predicted(3.0)[3].tolist()
+    t = 200 * ODOM_DT
+    bad = ((1e-4, 0.0, 0.0), (0.0, math.nan, 0.0), (0.0, 0.0, 1e-4))
+    assert not a.predict_twist(t, 0.0, 0.0, 0.0, bad).accepted
+    assert not a.predict_twist(t, 0.0, 0.0, 0.0, ((1e-4, 1.0, 0.0), (0.0, 1e-4, 0.0), (0.0, 0.0, 1e-4))).accepted
+    assert not a.predict_twist(t, 0.0, 0.0, 0.0, ((1e-4, 0.0), (0.0, 1e-4))).accepted  # not 3x3
+    # ints (or numpy scalars) are not float rows: numpy's path, which accepts them as before
+    assert a.predict_twist(t, 0.0, 0.0, 0.0, ((1, 0, 0), (0, 1, 0), (0, 0, 1))).accepted

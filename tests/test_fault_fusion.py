@@ -194,6 +194,69 @@ def _odo(t: float, dt: float = 0.01) -> WheelOdometry:
     return WheelOdometry(t=t, angles=(0.0,) * 4, speeds=(0.0,) * 4, dt=dt, t_board=t)
 
 
+def test_an_odometry_queue_listener_takes_every_sample_in_order_and_queued_ones_first():
+    samples = [_odo(0.01 * k) for k in range(1, 7)]
+    q = OdometryQueue(4)
+    q.put_nowait(samples[0])
+    q.put_nowait(samples[1])
+    got = []
+    q.set_listener(got.append)
+    assert got == samples[:2] and q.empty()  # what waited is handed over first
+    for s in samples[2:4]:
+        q.put_nowait(s)
+    assert got == samples[:4] and q.empty() and q.coalesced == 0
+    q.set_listener(None)  # queueing again
+    for s in samples[4:]:
+        q.put_nowait(s)
+    assert got == samples[:4] and [q.get_nowait() for _ in range(q.qsize())] == samples[4:]
+
+
+def test_a_listener_that_detaches_itself_leaves_the_rest_queued():
+    samples = [_odo(0.01 * k) for k in range(1, 4)]
+    q = OdometryQueue(8)
+    for s in samples:
+        q.put_nowait(s)
+    got = []
+
+    def once(s):
+        got.append(s)
+        q.set_listener(None)
+
+    q.set_listener(once)
+    assert got == samples[:1] and [q.get_nowait() for _ in range(q.qsize())] == samples[1:]
+
+
+def test_the_app_fuses_odometry_as_the_driver_hands_it_over_and_stops_on_an_error(caplog):
+    """The app's odometry is the queue's listener (no task per sample); a sample whose handling
+    fails ends the fusion of odometry, as the task it replaces did when it died, and never
+    reaches into the driver's message handling."""
+    from robot.app.controller import AppOptions, RobotApp
+    from robot.maps.plane_map import load_plane_map
+
+    q = OdometryQueue(16)
+
+    class Chassis:
+        def odometry_queue(self, maxsize: int = 256) -> OdometryQueue:
+            return q
+
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], Chassis(),
+                   options=AppOptions(vision=False))
+    app.core.set_pose(0.0, 0.5, 0.5, 0.0, np.diag([1e-4, 1e-4, 1e-4]))
+    app._odometry_queue = app.chassis.odometry_queue()
+    app._odometry_queue.set_listener(app._odometry)
+    q.put_nowait(_odo(0.01))
+    assert app.stats.odometry == 1 and app.core.counters["odometry"] == 1 and app.odom.t == 0.01
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    app.core.on_odometry = broken
+    q.put_nowait(_odo(0.02))  # does not raise into the feeder
+    assert app._odometry_queue is None and "odometry is no longer fused" in caplog.text
+    q.put_nowait(_odo(0.03))
+    assert app.stats.odometry == 2 and q.qsize() == 1  # queued, no longer fused
+
+
 @pytest.mark.parametrize("mode", ["auto", "command"])
 def test_after_a_stall_the_mission_waits_for_the_pose_and_in_command_mode_for_the_operator(mode):
     robot = replace(ROBOT, health=replace(ROBOT.health, resume_after_fault=mode, vision_required=False),

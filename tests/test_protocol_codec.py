@@ -241,3 +241,43 @@ def test_round_trip_stream_split_anywhere(msgs, cuts):
         prev = p
     assert out == msgs
     assert d.stats.frames == len(msgs) and d.stats.dropped_frames == 0
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.binary(max_size=253) | st.lists(st.sampled_from([0, 1, 255]), max_size=253).map(bytes))
+def test_cobs_short_data_takes_the_one_block_path_with_the_general_encoding(data):
+    """Data shorter than 254 bytes (every protocol frame) is encoded without the block loop; the
+    bytes are the general encoder's."""
+    from firmware_protocol.cobs import _cobs_encode_blocks, cobs_decode, cobs_encode
+
+    assert cobs_encode(data) == _cobs_encode_blocks(data)
+    assert cobs_decode(cobs_encode(data)) == data
+
+
+def test_wheel_commands_keep_their_checks_and_wire_bytes():
+    """The written-out checks of a speed command refuse and accept what they did, and the frame
+    of a command is the bytes the general path gives."""
+    import math
+
+    from drivers.chassis.session import check_wheels, scale_into
+    from firmware_protocol.cobs import _cobs_encode_blocks
+    from firmware_protocol.frame import crc32
+
+    for bad in ((1.0, 2.0, 3.0), (1.0, math.nan, 0.0, 0.0), (math.inf, 0.0, 0.0, 0.0), ("a", 0, 0, 0), None):
+        with pytest.raises(ValueError):
+            check_wheels(bad)
+    for bad in ((1.0, 2.0, 3.0), (0.0, 0.0, 0.0, -math.inf)):
+        with pytest.raises(ValueError):
+            fp.SetWheelSpeeds.from_rad_s(bad)
+    rng = random.Random(3)
+    for _ in range(500):
+        w = [rng.uniform(-40.0, 40.0) for _ in range(4)]
+        assert check_wheels(tuple(w)) == w
+        scaled, did = scale_into(w, 20.0)
+        peak = max(abs(v) for v in w)
+        assert did == (peak > 20.0) and scaled == ([v * 20.0 / peak for v in w] if did else w)
+        msg = fp.SetWheelSpeeds.from_rad_s(scaled, seq=rng.randrange(256))
+        assert msg.speeds_mrad_s == tuple(int(round(v * fp.MRAD)) for v in scaled)
+        body = bytes([fp.PROTOCOL_VERSION, msg.MSG_ID, msg.seq]) + msg.payload()
+        expected = b"\x00" + _cobs_encode_blocks(body + crc32(body).to_bytes(4, "little")) + b"\x00"
+        assert fp.encode(msg) == expected

@@ -14,7 +14,7 @@ import asyncio
 import collections
 import enum
 from dataclasses import dataclass
-from typing import Deque, Dict, Optional, Sequence, Tuple
+from typing import Callable, Deque, Dict, Optional, Sequence, Tuple
 
 from drivers.chassis.encoders import merge_odometry
 from firmware_protocol import HelloReply, Status, StatusFlag
@@ -60,13 +60,25 @@ class OdometryQueue:
     built, which raises outside a loop once any ``asyncio.run`` has finished in the process, and
     the simulated-clock runner reads this queue with no loop at all. A consumer that awaits
     ``get()`` binds to its running loop at that moment instead. Like ``asyncio.Queue``, it is not
-    thread-safe: feed it from the consumer's loop (or from the same thread, synchronously)."""
+    thread-safe: feed it from the consumer's loop (or from the same thread, synchronously).
+
+    A consumer on the feeding thread may take the samples as they are put instead
+    (``set_listener``): no task wakes per sample, so no loop iteration is spent on the hand-over."""
 
     def __init__(self, maxsize: int = 256):
         self.limit = max(2, int(maxsize))
         self.coalesced = 0
         self._items: Deque[WheelOdometry] = collections.deque()
         self._getters: Deque[asyncio.Future] = collections.deque()
+        self._listener: Optional[Callable[[WheelOdometry], None]] = None
+
+    def set_listener(self, listener: Optional[Callable[[WheelOdometry], None]]) -> None:
+        """Hand every sample to ``listener`` when it is put, in place of queueing it (None: queue
+        again). Samples already queued go to it first, in order. It is called by the feeder (on
+        the loop, inside the driver's message handling), so it must not raise."""
+        self._listener = listener
+        while listener is not None and self._items and self._listener is listener:
+            listener(self._items.popleft())
 
     def qsize(self) -> int:
         return len(self._items)
@@ -75,6 +87,10 @@ class OdometryQueue:
         return not self._items
 
     def put_nowait(self, item: WheelOdometry) -> None:
+        listener = self._listener
+        if listener is not None:
+            listener(item)
+            return
         q = self._items
         if len(q) >= self.limit:
             first = q.popleft()

@@ -6,9 +6,10 @@ the I/O and the link supervision around it.
 
 Threads and the loop: one reader thread per open port blocks in ``serial.read`` and decodes (the
 codec is pure), then hands the messages with their host receive time to the asyncio loop with
-``call_soon_threadsafe``. Everything else runs on the loop: the state machine, odometry, and the
-writes, which are non-blocking (a frame the OS will not take is dropped and counted, never
-queued: a late speed command is worse than none).
+``call_soon_threadsafe`` (a batch of nothing but ACKs waits for the next batch: ``_read_loop``).
+Everything else runs on the loop: the state machine, odometry, and the writes, which are
+non-blocking (a frame the OS will not take is dropped and counted, never queued: a late speed
+command is worse than none).
 
 Safety rules this class keeps (tests/test_chassis_driver.py and the chassis contract suite prove
 them against the emulator):
@@ -38,6 +39,7 @@ from drivers.chassis.base import Chassis, ChassisStatus, LinkState, OdometryQueu
 from drivers.chassis.session import HEARTBEAT_PERIOD, BoardRefused, HostSession, check_wheels, nack_text, scale_into
 from firmware_protocol import (
     PROTOCOL_VERSION,
+    Ack,
     EncoderReport,
     Heartbeat,
     HelloReply,
@@ -57,6 +59,8 @@ HELLO_RESEND = 0.25
 BACKOFF_START = 0.05  # s, first reconnect delay; doubles up to config.reconnect_backoff_max
 READ_TIMEOUT = 0.05  # s a blocked read waits, bounding how long closing the port takes
 _REPORT_WIRE_BYTES = 3 + EncoderReport.LAYOUT.size + 4 + 3  # header + payload + CRC + COBS byte + 2 delimiters
+# Batches of nothing but ACKs the reader may hold for the next batch that matters (see _read_loop).
+MAX_HELD_ACK_BATCHES = 8
 
 
 def reconnect_delay(attempt: int, cap: float) -> float:
@@ -80,6 +84,7 @@ class SerialChassis(Chassis):
         self.on_odometry = on_odometry
         self.on_status = on_status
         self._session = HostSession(self.config, name=self.port)
+        self._report_latency = _REPORT_WIRE_BYTES * 10.0 / self.config.baud  # s on the wire per report
         self._state = LinkState.CLOSED
         self._counters = self._session.counters  # one set of counters: the protocol's and the link's
         self._queues: List[asyncio.Queue] = []
@@ -245,19 +250,40 @@ class SerialChassis(Chassis):
                 await self._drop_port()
 
     async def _monitor(self) -> str:
-        """Wait while the link is healthy, sending heartbeats; return why it is not any more."""
+        """Wait while the link is healthy, sending heartbeats; return why it is not any more.
+
+        The look every ``tick`` is a timer callback, not a task that sleeps: a sleeping task
+        costs a future and a second loop iteration per wake-up, fifty times a second."""
         tick = max(0.005, min(0.02, self.config.link_timeout / 4.0))
         session = self._session
-        while True:
-            await asyncio.sleep(tick)
-            now = time.monotonic()
-            if session.lost_reason is not None:
-                return session.lost_reason
-            silent = session.silence(now)
-            if silent is not None:
-                return silent
-            if now - self._last_tx > HEARTBEAT_PERIOD:
-                self._write(session.frame(Heartbeat()))
+        loop = self._loop
+        lost: asyncio.Future = loop.create_future()
+        timer: List[asyncio.TimerHandle] = []
+
+        def look() -> None:
+            if lost.done():
+                return
+            try:
+                now = time.monotonic()
+                if session.lost_reason is not None:
+                    lost.set_result(session.lost_reason)
+                    return
+                silent = session.silence(now)
+                if silent is not None:
+                    lost.set_result(silent)
+                    return
+                if now - self._last_tx > HEARTBEAT_PERIOD:
+                    self._write(session.frame(Heartbeat()))
+            except Exception as e:  # raised out of _monitor, as from the task that slept here
+                lost.set_exception(e)
+                return
+            timer[0] = loop.call_later(tick, look)
+
+        timer.append(loop.call_later(tick, look))
+        try:
+            return await lost
+        finally:
+            timer[0].cancel()
 
     async def _open_and_handshake(self) -> None:
         self._state = LinkState.CONNECTING
@@ -368,9 +394,16 @@ class SerialChassis(Chassis):
         return True
 
     def _read_loop(self, ser, gen: int, stop: threading.Event) -> None:
-        """Reader thread: block in read, decode, hand messages to the loop. Owns the decoder."""
+        """Reader thread: block in read, decode, hand messages to the loop. Owns the decoder.
+
+        The board ACKs every speed command (50 a second) in a frame of its own. A batch of nothing
+        but ACKs asks nothing of the loop (counters; the STOP of ``close`` is awaited, and its ACK
+        goes at once), so it waits, with its own receive time, for the next batch that does (the
+        next encoder report, within 10 ms) or for a read that times out; the loop then handles
+        the batches in order. Waking the loop for each ACK cost as much as for a report."""
         loop = self._loop
         session = self._session
+        held: List[Tuple[float, List[Message]]] = []
         while not stop.is_set():
             try:
                 data = ser.read(1)
@@ -380,13 +413,31 @@ class SerialChassis(Chassis):
                         data += ser.read(waiting)
             except Exception as e:  # pyserial raises several types when a device vanishes
                 if not stop.is_set():
+                    if held:
+                        self._post(loop, self._on_batches, gen, held)
                     self._post(loop, self._on_port_error, gen, f"port error: {e}")
                 return
             if not data:
+                if held:  # the line went quiet: what was held goes now
+                    if not self._post(loop, self._on_batches, gen, held):
+                        return
+                    held = []
                 continue
             t_rx = time.monotonic()
             msgs = session.decode(data)
-            if msgs and not self._post(loop, self._on_messages, gen, t_rx, msgs):
+            if not msgs:
+                continue
+            if (len(held) < MAX_HELD_ACK_BATCHES and self._stop_ack is None
+                    and all(type(m) is Ack for m in msgs)):
+                held.append((t_rx, msgs))
+                continue
+            if held:
+                held.append((t_rx, msgs))
+                posted = self._post(loop, self._on_batches, gen, held)
+                held = []
+            else:
+                posted = self._post(loop, self._on_messages, gen, t_rx, msgs)
+            if not posted:
                 return
 
     @staticmethod
@@ -403,11 +454,16 @@ class SerialChassis(Chassis):
         if gen == self._gen:
             self._session.lose(reason)
 
+    def _on_batches(self, gen: int, batches: List[Tuple[float, List[Message]]]) -> None:
+        """Several received batches in one loop callback, each as ``_on_messages`` takes it."""
+        for t_rx, msgs in batches:
+            self._on_messages(gen, t_rx, msgs)
+
     def _on_messages(self, gen: int, t_rx: float, msgs: List[Message]) -> None:
         if gen != self._gen:
             return
         old_status = self._session.status
-        got = self._session.handle(msgs, t_rx, latency=_REPORT_WIRE_BYTES * 10.0 / self.config.baud)
+        got = self._session.handle(msgs, t_rx, latency=self._report_latency)
         if got.reply is not None and self._hello_wait is not None and not self._hello_wait.done():
             self._hello_wait.set_result(got.reply)
         stop_ack = self._stop_ack
@@ -424,9 +480,10 @@ class SerialChassis(Chassis):
                 log.warning("%s: the board's watchdog stopped the wheels (no fresh speed command)", self.port)
             if self.on_status is not None:
                 self.on_status(st)
-        for sample in got.odometry:
-            if self.on_odometry is not None:
-                self.on_odometry(sample)
-            for q in self._queues:
-                q.put_nowait(sample)  # full, an OdometryQueue merges its oldest samples: no tick is lost
+        if got.odometry:
+            for sample in got.odometry:
+                if self.on_odometry is not None:
+                    self.on_odometry(sample)
+                for q in self._queues:
+                    q.put_nowait(sample)  # full, an OdometryQueue merges its oldest samples: no tick is lost
             self._counters["odometry_coalesced"] = sum(q.coalesced for q in self._queues)

@@ -104,7 +104,7 @@ def check_wheels(wheels: object) -> List[float]:
         w = [float(v) for v in wheels]  # type: ignore[union-attr]
     except (TypeError, ValueError):
         w = []
-    if len(w) != 4 or not all(math.isfinite(v) for v in w):
+    if len(w) != 4 or not (math.isfinite(w[0]) and math.isfinite(w[1]) and math.isfinite(w[2]) and math.isfinite(w[3])):
         raise ValueError(f"wheel speeds must be 4 finite numbers (rad/s), got {wheels!r}; wheels stopped")
     return w
 
@@ -112,7 +112,7 @@ def check_wheels(wheels: object) -> List[float]:
 def scale_into(wheels: Sequence[float], limit: float) -> Tuple[List[float], bool]:
     """Speeds beyond ``limit`` scaled down together, which keeps the direction of travel; and
     whether they had to be."""
-    peak = max(abs(v) for v in wheels)
+    peak = max(map(abs, wheels))
     if peak <= limit:
         return list(wheels), False
     return [v * limit / peak for v in wheels], True

@@ -7,14 +7,16 @@ Threads and tasks:
   counted as dropped (drop-oldest: localizing an old frame is wasted work);
 - one localization worker thread (a single-thread executor) runs the CPU-heavy localizer, so the
   control loop keeps its period; the fused result comes back to the loop;
-- the chassis driver's reader thread posts odometry to the loop;
-- the control task ticks at ``control.rate`` on absolute deadlines and is the only sender of
-  wheel commands, the only source of the systemd watchdog ping, and the place health is applied.
+- the chassis driver's reader thread posts odometry to the loop, which fuses each sample as the
+  driver hands it over (the odometry queue's listener, no task per sample);
+- the control tick (a timer callback that schedules the next) runs at ``control.rate`` on
+  absolute deadlines and is the only sender of wheel commands, the only source of the systemd
+  watchdog ping, and the place health is applied.
 
 Operator: SIGUSR1 pauses the path (brake within the limits and hold), SIGUSR2 resumes it
 (``systemctl kill -s SIGUSR1 robot-controller``).
 
-Shutdown (SIGINT/SIGTERM, the mission's end, or ``request_stop``): the control task stops, the
+Shutdown (SIGINT/SIGTERM, the mission's end, or ``request_stop``): the control tick stops, the
 wheels get STOP (the board ACKs it), cameras stop, the pose is saved, the recording is closed.
 """
 
@@ -35,7 +37,7 @@ import numpy as np
 
 from drivers.camera.base import CameraDriver, CameraState
 from drivers.camera.realsense_imu import yaw_rate_robot
-from drivers.chassis.base import Chassis, LinkState
+from drivers.chassis.base import Chassis, LinkState, OdometryQueue
 from drivers.chassis.encoders import quantisation_variance
 from robot.app import sd_notify
 from robot.app.calibration_store import CalibrationStore
@@ -43,7 +45,7 @@ from robot.app.operator import remote_services
 from robot.app.pose_store import PoseStore
 from robot.base.errors import DriverError
 from robot.base.frames import FrameCheck
-from robot.base.samples import DepthFrame
+from robot.base.samples import DepthFrame, WheelOdometry
 from robot.config import RobotConfig
 from robot.config.calibration import calibrated_frame, error_model_note
 from robot.config.dump import effective_config_dict
@@ -134,11 +136,18 @@ class RobotApp:
         self.camera_states: Dict[str, str] = {c.name: CameraState.STOPPED.value for c in self.cameras}
         self._loop: Optional[asyncio.AbstractEventLoop] = None
         self._stop: Optional[asyncio.Event] = None
-        self._new_frame: Optional[asyncio.Event] = None
+        # The localization pipeline: running, a set in the worker, the wait for the rest of a set.
+        self._sets_running = False
+        self._set_in_worker = False
+        self._set_timer: Optional[asyncio.TimerHandle] = None
         self._slots: Dict[str, Optional[DepthFrame]] = {}
+        self._odometry_queue: Optional[OdometryQueue] = None  # while its listener is self._odometry
+        self._control_timer: Optional[asyncio.Handle] = None  # the next control tick while ticking
+        self._control_period = 0.0
+        self._control_next = 0.0
         self._executor = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="localize")
         self._watchdog = sd_notify.WatchdogPinger()
-        self._stall_control_until = 0.0  # test hook: the control task sleeps through its ticks
+        self._stall_control_until = 0.0  # test hook: the control tick sleeps through its ticks
         self.last_output = None
         self._record_seq = 0
         self._fusion_steps = 0  # sets of frames fused, one filter update each
@@ -191,14 +200,13 @@ class RobotApp:
         log.info("pose set to (%.3f, %.3f, %.1f deg) by %s", pose[0], pose[1], math.degrees(pose[2]), source)
 
     def stall_control_loop(self, seconds: float) -> None:
-        """Test hook: make the control task miss its ticks (a hung loop) for ``seconds``."""
+        """Test hook: make the control tick miss its ticks (a hung loop) for ``seconds``."""
         self._stall_control_until = time.monotonic() + seconds
 
     async def run(self) -> int:
         """Run until stopped; 0 on a normal end (path done, signal), 1 on a failure at start."""
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        self._new_frame = asyncio.Event()
         sys.setswitchinterval(GIL_SWITCH_INTERVAL)
         if self.options.install_signal_handlers:
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -236,11 +244,12 @@ class RobotApp:
             self.live_view.publish_static_transforms(time.monotonic(), camera_mounts(self.robot.cameras))
             if self.localizer is not None:  # label images cost memory: only for a view or a recording
                 self.localizer.keep_roi_labels = self.live_view.active or self.recorder.active
-            tasks = [self._loop.create_task(self._odometry_task(), name="odometry"),
-                     self._loop.create_task(self._control_task(), name="control"),
-                     self._loop.create_task(self._status_task(), name="status")]
+            self._odometry_queue = self.chassis.odometry_queue()
+            self._odometry_queue.set_listener(self._odometry)
+            self._start_control()
+            tasks = [self._loop.create_task(self._status_task(), name="status")]
             if self.localizer is not None:
-                tasks.append(self._loop.create_task(self._localization_task(), name="localization"))
+                self._start_localization()
                 tasks.append(self._loop.create_task(self._recovery_task(), name="recovery"))
             if self.options.remote:
                 self.services += remote_services(self)
@@ -338,6 +347,9 @@ class RobotApp:
                 await service.stop()
             except Exception as e:  # noqa: PERF203 - shutdown must go on
                 log.error("stopping %s: %s", type(service).__name__, e)
+        self._stop_control()  # with the tasks: no tick and none of the core's inputs after this
+        self._stop_odometry()
+        self._stop_localization()
         for task in tasks:
             task.cancel()
         for task in tasks:
@@ -414,97 +426,152 @@ class RobotApp:
             self.stats.frames_dropped[frame.camera] = self.stats.frames_dropped.get(frame.camera, 0) + 1
         self._slots[frame.camera] = frame
         self.latest_frames[frame.camera] = frame
-        self._new_frame.set()
+        self._consider_set()
 
     # -- tasks ----------------------------------------------------------------------------------
 
-    async def _odometry_task(self) -> None:
-        q = self.chassis.odometry_queue()
-        while True:
-            odo = await q.get()
+    def _odometry(self, odo: WheelOdometry) -> None:
+        """Each wheel odometry sample, on the loop as the chassis driver receives it (its queue's
+        listener: a task woken per sample cost a loop iteration a hundred times a second)."""
+        try:
             self.stats.odometry += 1
             self.core.on_odometry(odo, quantisation_variance(self.robot.chassis.ticks_per_rev, odo.dt))
             self.odom.update(odo)
-            self._record("odometry", odo.t, functools.partial(channels.odometry_message, odo.t, odo.speeds, odo.angles,
-                                                              odo.dt, odo.t_board))
+            if self.recorder.active:
+                self._record("odometry", odo.t, functools.partial(channels.odometry_message, odo.t, odo.speeds,
+                                                                  odo.angles, odo.dt, odo.t_board))
+        except Exception:
+            # As when this was a task that died: no more odometry is fused (the pose goes stale and
+            # the control tick stops the robot), and the driver's message handling goes on.
+            log.exception("wheel odometry: handling a sample failed; odometry is no longer fused")
+            self._stop_odometry()
 
-    async def _localization_task(self) -> None:
-        """The frames of all cameras are handled as one set: one hop to the worker (obstacle scans
-        and localizations) and one fusion step per set, so the filter's history is replayed once
-        per set rather than once per camera. Each frame is still localized alone, from the coarse
-        pose at its own capture time: unsynchronized cameras are up to a frame period apart."""
-        loop = self._loop
-        while True:
-            await self._new_frame.wait()
-            self._new_frame.clear()
-            await self._rest_of_set()
-            frames = [f for f in (self._slots.get(name) for name in list(self._slots)) if f is not None]
-            for frame in frames:
-                self._slots[frame.camera] = None
-            if not frames:
-                continue
-            # The protective stop sees every frame, with the pose if there is one; the localizer
-            # only once there is a pose to refine.
-            localize = self.core.initialized and self.localizer is not None
-            coarse = [self.core.coarse_pose(f.t_capture) if self.core.initialized else None for f in frames]
-            for frame in frames:
-                self.live_view.publish_depth(frame.t_capture, frame)
-                if localize:
-                    self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
-            outcomes = await loop.run_in_executor(self._executor, self._process_frames, frames, coarse, localize)
-            if not localize:
-                continue
-            done = []
-            for frame, prior, result in zip(frames, coarse, outcomes):
-                if isinstance(result, Exception):  # a bad frame is reported and skipped, never fused
-                    log.warning("camera %s frame %d: localization failed: %s", frame.camera, frame.frame_number, result)
-                    continue
-                self.stats.localizations += 1
-                self.stats.localize_ms.append(result.ms)
-                done.append((frame, prior, result))
-            if len(self.stats.localize_ms) > 10000:
-                del self.stats.localize_ms[:5000]
-            if not done:
-                continue
-            reports = self.core.on_localizations([(result, frame.t_capture, frame.camera) for frame, _, result in done])
-            self._fusion_steps += 1
-            for (frame, ((x, y, phi), P), result), report in zip(done, reports):
-                name = frame.camera
-                # everything replay needs to redo this localization bit for bit, and what it gave
-                self._record("planes", frame.t_capture, functools.partial(channels.planes_message,
-                    frame.t_capture, name, result.planes, frame_number=frame.frame_number, method=self.options.method,
-                    coarse=(x, y, phi), coarse_cov=P, status=result.status, accepted=report.accepted,
-                    rejected=report.rejected, measurements=result.measurements, fusion_step=self._fusion_steps))
-                self.live_view.publish_planes(frame.t_capture, name, result.planes)
-                if self.recorder.active:
-                    self.recorder.write(channels.TOPIC_PLANE_FITS, frame.t_capture, channels.plane_fits_message(
-                        frame.t_capture, name, result.planes, self.plane_map))
-                labels = self.localizer.last_roi_labels.get(name)
-                if labels is not None:
-                    self.live_view.publish_roi(frame.t_capture, name, labels)
-                    self.recorder.write_roi(frame.t_capture, name, labels)
+    def _stop_odometry(self) -> None:
+        if self._odometry_queue is not None:
+            self._odometry_queue.set_listener(None)
+            self._odometry_queue = None
 
-    async def _rest_of_set(self) -> None:
-        """Wait for the other streaming cameras' frames, at most half a frame period after the first:
-        unsynchronized cameras deliver at any phase, and the protective stop's reaction time must
-        not wait for a camera that has stalled."""
-        wait = 0.5 / max(c.fps for c in self.robot.cameras) if self.robot.cameras else 0.0
-        deadline = time.monotonic() + wait
-        while True:
-            missing = [name for name, frame in self._slots.items()
-                       if frame is None and self.camera_states.get(name) == _STREAMING]
-            left = deadline - time.monotonic()
-            if not missing or left <= 0:
-                return
-            # A timer sets the event at the deadline; no asyncio.wait_for, which on Python 3.8 can
-            # swallow the task's cancellation when the event is set at the same moment (the
-            # shutdown then waited for ever on a task that had gone on to the next set).
-            self._new_frame.clear()
-            timer = asyncio.get_running_loop().call_later(left, self._new_frame.set)
-            try:
-                await self._new_frame.wait()
-            finally:
-                timer.cancel()
+    # -- the localization pipeline ---------------------------------------------------------------
+    #
+    # The frames of all cameras are handled as one set: one hop to the worker (obstacle scans and
+    # localizations) and one fusion step per set, so the filter's history is replayed once per set
+    # rather than once per camera. Each frame is still localized alone, from the coarse pose at its
+    # own capture time: unsynchronized cameras are up to a frame period apart. The pipeline is
+    # callbacks on the loop, not a task: a frame's arrival, the end of the wait for the rest of a
+    # set and the worker's result each run it on in the loop iteration that brought them (a task
+    # woke one iteration later, and each iteration gives up and retakes the GIL beside the worker).
+
+    def _start_localization(self) -> None:
+        self._sets_running = True
+        self._consider_set()  # frames that came before
+
+    def _stop_localization(self) -> None:
+        """No set is sent after this, and the result of one in the worker is dropped."""
+        self._sets_running = False
+        if self._set_timer is not None:
+            self._set_timer.cancel()
+            self._set_timer = None
+
+    def _consider_set(self) -> None:
+        """A frame arrived, or the worker is free: send the set when the other streaming cameras'
+        frames are in, else wait for them at most half a frame period from now (unsynchronized
+        cameras deliver at any phase, and the protective stop's reaction time must not wait for a
+        camera that has stalled). A camera that is not streaming is not waited for."""
+        if not self._sets_running or self._set_in_worker or all(f is None for f in self._slots.values()):
+            return
+        missing = [name for name, frame in self._slots.items()
+                   if frame is None and self.camera_states.get(name) == _STREAMING]
+        if not missing:
+            self._send_set()
+        elif self._set_timer is None:
+            wait = 0.5 / max(c.fps for c in self.robot.cameras) if self.robot.cameras else 0.0
+            if wait > 0.0:
+                self._set_timer = self._loop.call_later(wait, self._set_wait_over)
+            else:
+                self._send_set()
+
+    def _set_wait_over(self) -> None:
+        self._set_timer = None
+        if self._sets_running and not self._set_in_worker:
+            self._send_set()
+
+    def _send_set(self) -> None:
+        """Take the frames out of their slots and hand them to the worker."""
+        if self._set_timer is not None:
+            self._set_timer.cancel()
+            self._set_timer = None
+        frames = [f for f in (self._slots.get(name) for name in list(self._slots)) if f is not None]
+        for frame in frames:
+            self._slots[frame.camera] = None
+        if not frames:
+            return
+        # The protective stop sees every frame, with the pose if there is one; the localizer
+        # only once there is a pose to refine.
+        localize = self.core.initialized and self.localizer is not None
+        coarse = [self.core.coarse_pose(f.t_capture) if self.core.initialized else None for f in frames]
+        for frame in frames:
+            self.live_view.publish_depth(frame.t_capture, frame)
+            if localize:
+                self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
+        self._set_in_worker = True
+        work = self._executor.submit(self._process_frames, frames, coarse, localize)
+        work.add_done_callback(functools.partial(self._set_processed_threadsafe, frames, coarse, localize))
+
+    def _set_processed_threadsafe(self, frames: List[DepthFrame], coarse: list, localize: bool,
+                                  work: concurrent.futures.Future) -> None:
+        try:
+            self._loop.call_soon_threadsafe(self._set_processed, frames, coarse, localize, work)
+        except RuntimeError:
+            pass  # the loop is closed: shutting down
+
+    def _set_processed(self, frames: List[DepthFrame], coarse: list, localize: bool,
+                       work: concurrent.futures.Future) -> None:
+        self._set_in_worker = False
+        if not self._sets_running:
+            return  # stopped meanwhile: nothing more is fused
+        try:
+            if localize:
+                self._fuse_set(frames, coarse, work.result())
+            else:
+                work.result()
+        except Exception:
+            # As when this was a task that died: no more frames are scanned or localized (the
+            # protective stop's scans age out and it holds the robot).
+            log.exception("localization: handling a set of frames failed; no more frames are localized")
+            self._stop_localization()
+            return
+        self._consider_set()  # frames that came meanwhile
+
+    def _fuse_set(self, frames: List[DepthFrame], coarse: list, outcomes: list) -> None:
+        done = []
+        for frame, prior, result in zip(frames, coarse, outcomes):
+            if isinstance(result, Exception):  # a bad frame is reported and skipped, never fused
+                log.warning("camera %s frame %d: localization failed: %s", frame.camera, frame.frame_number, result)
+                continue
+            self.stats.localizations += 1
+            self.stats.localize_ms.append(result.ms)
+            done.append((frame, prior, result))
+        if len(self.stats.localize_ms) > 10000:
+            del self.stats.localize_ms[:5000]
+        if not done:
+            return
+        reports = self.core.on_localizations([(result, frame.t_capture, frame.camera) for frame, _, result in done])
+        self._fusion_steps += 1
+        for (frame, ((x, y, phi), P), result), report in zip(done, reports):
+            name = frame.camera
+            # everything replay needs to redo this localization bit for bit, and what it gave
+            self._record("planes", frame.t_capture, functools.partial(channels.planes_message,
+                frame.t_capture, name, result.planes, frame_number=frame.frame_number, method=self.options.method,
+                coarse=(x, y, phi), coarse_cov=P, status=result.status, accepted=report.accepted,
+                rejected=report.rejected, measurements=result.measurements, fusion_step=self._fusion_steps))
+            self.live_view.publish_planes(frame.t_capture, name, result.planes)
+            if self.recorder.active:
+                self.recorder.write(channels.TOPIC_PLANE_FITS, frame.t_capture, channels.plane_fits_message(
+                    frame.t_capture, name, result.planes, self.plane_map))
+            labels = self.localizer.last_roi_labels.get(name)
+            if labels is not None:
+                self.live_view.publish_roi(frame.t_capture, name, labels)
+                self.recorder.write_roi(frame.t_capture, name, labels)
 
     def _process_frames(self, frames: Sequence[DepthFrame], coarse: Sequence[Optional[Tuple]], localize: bool) -> list:
         """On the worker: each frame's obstacle scan, then (``localize``) its localization, or the
@@ -583,21 +650,39 @@ class RobotApp:
         except Exception as e:  # a bad frame must not kill the worker; its camera's scan just ages out
             log.warning("camera %s frame %d: obstacle scan failed: %s", frame.camera, frame.frame_number, e)
 
-    async def _control_task(self) -> None:
+    def _start_control(self) -> None:
+        """Tick at ``control.rate`` on absolute deadlines. Each tick is a timer callback that
+        schedules the next, not a task that sleeps: a sleeping task costs a future and a second
+        loop iteration per tick. A tick that raises schedules no more (as the task died with
+        it): the board's watchdog then stops the wheels and systemd's the process."""
+        self._control_period = 1.0 / self.robot.control.rate
+        self._control_next = self._loop.time()
+        self._schedule_tick()
+
+    def _schedule_tick(self) -> None:
         loop = self._loop
-        period = 1.0 / self.robot.control.rate
-        next_t = loop.time()
-        while True:
-            next_t += period
-            delay = next_t - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            elif delay < -period:
-                next_t = loop.time()  # fell behind by more than a tick: do not burst to catch up
-            if time.monotonic() < self._stall_control_until:
-                time.sleep(period)  # simulate a hung loop: block the event loop itself
-                continue
+        period = self._control_period
+        self._control_next += period
+        delay = self._control_next - loop.time()
+        if delay > 0:
+            self._control_timer = loop.call_at(self._control_next, self._control_tick)
+            return
+        if delay < -period:
+            self._control_next = loop.time()  # fell behind by more than a tick: do not burst to catch up
+        self._control_timer = loop.call_soon(self._control_tick)
+
+    def _control_tick(self) -> None:
+        self._control_timer = None
+        if time.monotonic() < self._stall_control_until:
+            time.sleep(self._control_period)  # simulate a hung loop: block the event loop itself
+        else:
             self._tick(time.monotonic())
+        self._schedule_tick()
+
+    def _stop_control(self) -> None:
+        if self._control_timer is not None:
+            self._control_timer.cancel()
+            self._control_timer = None
 
     def _tick(self, t: float) -> None:
         ticks = self.stats.tick_times
@@ -624,9 +709,10 @@ class RobotApp:
             self.stats.commands_withheld += 1
         self._watchdog.tick()  # only a control loop that ticks keeps systemd from restarting us
         c = out.command
-        self._record("cmd", t, functools.partial(channels.cmd_message, t, c.vx, c.vy, c.wz, out.wheels,
-                                                 sent=out.wheels is not None, state=c.state, scale=out.speed_scale,
-                                                 reason=out.reason))
+        if self.recorder.active:  # (not even the message's recipe is built for nobody)
+            self._record("cmd", t, functools.partial(channels.cmd_message, t, c.vx, c.vy, c.wz, out.wheels,
+                                                     sent=out.wheels is not None, state=c.state, scale=out.speed_scale,
+                                                     reason=out.reason))
         self.live_view.publish_cmd(t, c.vx, c.vy, c.wz, out.wheels)
         self._publish_pose(t)
         if self.options.stop_when_done and self.core.finished:

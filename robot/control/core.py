@@ -457,6 +457,9 @@ class ControllerCore:
 
     def evaluate_quality(self, t: float) -> QualityReport:
         _, P = self.pose(t) if self.filter.initialized else (None, np.full((3, 3), np.inf))
+        return self._evaluate_quality(t, P)
+
+    def _evaluate_quality(self, t: float, P: np.ndarray) -> QualityReport:
         self._last_quality = self.quality.evaluate(t, P, self._protection)
         return self._last_quality
 
@@ -479,13 +482,14 @@ class ControllerCore:
         if not self.filter.initialized:
             turn = self._recovery_turn(t, None) if self.vision else None
             return turn if turn is not None else self._silent(t, "no pose yet")
-        quality = self.evaluate_quality(t)
+        # One pose for the quality and the command: the filter's memo gave the same twice.
+        (x, y, phi), P = self.pose(t)
+        quality = self._evaluate_quality(t, P)
         scale, reason = self.speed_scale(t, quality)
         if self.vision:  # without vision there is nothing to relocalize with (odometry-only runs)
             self.recovery.on_quality(t, quality.state)
         if self.vision and self.recovery.holding:  # brake within the limits and hold until confirmed
             scale, reason = 0.0, f"{self.recovery.state}: {self.recovery.reason}"
-        (x, y, phi), P = self.pose(t)
         scale, reason = self._fault_hold(t, P, scale, reason)
         if self._queued and self.trajectory is not None and self.trajectory.finished:
             self._start(self._queued.pop(0))
@@ -512,11 +516,24 @@ class ControllerCore:
             return self._silent(t, self._chassis_reason or "chassis link down", cmd)
         if not self.health.command_fresh(cmd.t_issued, t):
             return self._silent(t, f"command from {cmd.t_issued:.3f} s is stale at {t:.3f} s", cmd)
-        wheels, _ = self.kinematics.limit(self.kinematics.inverse(cmd.vx, cmd.vy, cmd.wz),
-                                          self.robot.chassis.max_wheel_speed)
-        if not np.isfinite(wheels).all():
+        wheels = self._wheels(cmd.vx, cmd.vy, cmd.wz)
+        if wheels is None:
             return self._silent(t, "non-finite wheel command refused", cmd)
-        return ControlOutput(t, cmd, tuple(float(w) for w in wheels), scale, reason)  # type: ignore[arg-type]
+        return ControlOutput(t, cmd, wheels, scale, reason)
+
+    def _wheels(self, vx: float, vy: float, wz: float) -> Optional[Tuple[float, float, float, float]]:
+        """The wheel speeds of a twist scaled into the limit as ``MecanumKinematics.limit`` does
+        (the same products, in floats after its inverse), or None when they are not finite."""
+        w0, w1, w2, w3 = self.kinematics.inverse(vx, vy, wz).tolist()
+        isfinite = math.isfinite
+        if not (isfinite(w0) and isfinite(w1) and isfinite(w2) and isfinite(w3)):
+            return None
+        peak = max(abs(w0), abs(w1), abs(w2), abs(w3))
+        max_speed = self.robot.chassis.max_wheel_speed
+        if peak <= max_speed or peak == 0.0:
+            return w0, w1, w2, w3
+        k = max_speed / peak
+        return w0 * k, w1 * k, w2 * k, w3 * k
 
     def _turn_blocker(self, t: float) -> str:
         """Why the in-place turn may not go on now ("" when it may)."""
@@ -570,10 +587,10 @@ class ControllerCore:
         reason = f"{rec.state}: {rec.reason}" + (f"; {reason}" if reason else "")
         if not self.health.chassis_ok:
             return self._silent(t, self._chassis_reason or "chassis link down", cmd)
-        wheels, _ = self.kinematics.limit(self.kinematics.inverse(0.0, 0.0, cmd.wz), self.robot.chassis.max_wheel_speed)
-        if not np.isfinite(wheels).all():
+        wheels = self._wheels(0.0, 0.0, cmd.wz)
+        if wheels is None:
             return self._silent(t, "non-finite wheel command refused", cmd)
-        return ControlOutput(t, cmd, tuple(float(w) for w in wheels), 0.0, reason)  # type: ignore[arg-type]
+        return ControlOutput(t, cmd, wheels, 0.0, reason)
 
     def _protective_stop(self, t: float, cmd: Command, pose, reason: str) -> Tuple[Command, str]:
         """The command limited by the obstacle picture (stop, slow-down and blind zones)."""

@@ -48,6 +48,7 @@ class MecanumKinematics:
         self.n_slip = np.array([1.0, 1.0, -1.0, -1.0]) / 2.0
         # F's rows are orthogonal, so equal independent wheel noise s2 gives s2 F F^T, a diagonal.
         self._FFt = self.F @ self.F.T
+        self._FFt_rows = tuple(tuple(row) for row in self._FFt.tolist())
 
     @classmethod
     def from_config(cls, config: ChassisConfig) -> MecanumKinematics:
@@ -66,6 +67,16 @@ class MecanumKinematics:
             q = 0.25 * self.r
             return np.array([q * (w0 + w1 + w2 + w3), q * (w1 + w2 - w0 - w3), q * (w1 + w3 - w0 - w2) / self.L])
         return np.asarray(wheels, dtype=float) @ self.F.T
+
+    def forward_floats(self, wheels: ArrayLike) -> Tuple[float, float, float]:
+        """``forward`` of one sample as a tuple of floats (what the odometry feed hands the filter)."""
+        if isinstance(wheels, tuple) and len(wheels) == 4 and not isinstance(wheels[0], (tuple, list, np.ndarray)):
+            # ``forward``'s arithmetic without the array it would build and the filter take apart again.
+            w0, w1, w2, w3 = float(wheels[0]), float(wheels[1]), float(wheels[2]), float(wheels[3])
+            q = 0.25 * self.r
+            return q * (w0 + w1 + w2 + w3), q * (w1 + w2 - w0 - w3), q * (w1 + w3 - w0 - w2) / self.L
+        vx, vy, wz = self.forward(wheels).tolist()
+        return vx, vy, wz
 
     def slip_residual(self, wheels: ArrayLike) -> np.ndarray:
         """rad/s of wheel speed no rigid motion explains: (w_FL + w_FR - w_RL - w_RR) / 2.
@@ -92,6 +103,12 @@ class MecanumKinematics:
         else:
             raise ValueError(f"wheel variance must be a scalar, 4 values or 4x4, got shape {v.shape}")
         return self.F @ cov_w @ self.F.T
+
+    def forward_covariance_rows(self, wheel_variance: float) -> Tuple[Tuple[float, float, float], ...]:
+        """``forward_covariance`` of one variance for all wheels, as rows of floats: the same
+        products (F F^T times the variance, entry by entry) without a numpy array per sample."""
+        v = float(wheel_variance)
+        return tuple((a * v, b * v, c * v) for a, b, c in self._FFt_rows)
 
     def limit(self, wheels: ArrayLike, max_speed: float) -> Tuple[np.ndarray, float]:
         """Scale all four wheels by one factor so none exceeds max_speed: keeps the direction of motion.

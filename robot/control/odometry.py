@@ -24,7 +24,7 @@ integrates each over the host interval since the previous one. Two things need c
 from __future__ import annotations
 
 import math
-from typing import List, Optional, Tuple
+from typing import List, Optional, Tuple, Union
 
 import numpy as np
 
@@ -36,7 +36,9 @@ BOARD_TIME_ROUNDING = 1e-6  # s: board times are sums of microseconds; only roun
 UNSEEN_POS_FLOOR = 0.005  # m std of motion nobody saw, even from rest (a board rebooting under its motors)
 UNSEEN_HEADING_FLOOR = math.radians(0.5)
 
-Step = Tuple[float, np.ndarray, np.ndarray]  # (t, mean body twist (vx, vy, wz), its 3x3 covariance)
+# (t, mean body twist (vx, vy, wz), its 3x3 covariance): floats and rows of floats for a sample
+# (a hundred a second, and the filter works in floats), arrays for the rare gap input.
+Step = Tuple[float, Union[Tuple[float, float, float], np.ndarray], Union[Tuple[Tuple[float, ...], ...], np.ndarray]]
 
 
 class OdometryFeed:
@@ -47,7 +49,7 @@ class OdometryFeed:
         self.kinematics = kinematics
         self.chassis = chassis
         self.wheel_speed_noise = float(wheel_speed_noise)
-        self._last_twist: Optional[np.ndarray] = None  # of the previous sample; None after a pose reset
+        self._last_twist: Optional[Tuple[float, float, float]] = None  # of the previous sample; None after a pose reset
         self._last_board: Optional[float] = None  # board time the previous sample ended at
 
     def reset(self) -> None:
@@ -58,7 +60,7 @@ class OdometryFeed:
     def steps(self, odo: WheelOdometry, quantisation_variance: float, t_last: float) -> Tuple[List[Step], Optional[str]]:
         """The filter inputs for ``odo`` (the previous input ended at ``t_last``) and, when the sample
         does not reach back to it, what the gap was."""
-        twist = np.asarray(self.kinematics.forward(odo.speeds), dtype=float)
+        twist = self.kinematics.forward_floats(odo.speeds)
         interval = float(odo.t) - float(t_last)
         dt = float(odo.dt)
         if not (math.isfinite(interval) and math.isfinite(dt) and interval > 0.0 and dt > 0.0):
@@ -75,9 +77,9 @@ class OdometryFeed:
         return ([(t_start, np.zeros(3), unseen), (odo.t, twist, self._twist_cov(quantisation_variance, dt))],
                 f"odometry gap of {gap:.2f} s (encoder baseline restarted): motion unknown")
 
-    def _twist_cov(self, quantisation_variance: float, interval: float) -> np.ndarray:
+    def _twist_cov(self, quantisation_variance: float, interval: float) -> Tuple[Tuple[float, ...], ...]:
         ripple = self.wheel_speed_noise ** 2 * min(1.0, RIPPLE_CORRELATION / interval)
-        return self.kinematics.forward_covariance(ripple + max(0.0, float(quantisation_variance)))
+        return self.kinematics.forward_covariance_rows(ripple + max(0.0, float(quantisation_variance)))
 
     def _unseen_cov(self, gap: float) -> np.ndarray:
         """Mean-twist covariance over ``gap`` whose displacement covers what the robot could do unseen."""

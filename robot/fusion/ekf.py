@@ -235,9 +235,23 @@ def _is_covariance(C: np.ndarray, n: int) -> bool:
     return bool(np.linalg.eigvalsh(C)[0] >= -1e-12 * scale)
 
 
-def _is_covariance3(rows: Sequence[Sequence[float]], C: np.ndarray) -> bool:
+def _float_rows3(C: object) -> Optional[Tuple[Tuple[float, float, float], ...]]:
+    """``C`` itself when it is a tuple of three tuples of three floats (what the odometry feed
+    passes a hundred times a second), else None (the caller goes through numpy)."""
+    if type(C) is not tuple or len(C) != 3:  # exactly a tuple, not a subclass
+        return None
+    for row in C:
+        if type(row) is not tuple or len(row) != 3:
+            return None
+        for v in row:
+            if type(v) is not float:  # a numpy scalar or a string takes numpy's path
+                return None
+    return C  # type: ignore[return-value]
+
+
+def _is_covariance3(rows: Sequence[Sequence[float]], C: Optional[np.ndarray] = None) -> bool:
     """``_is_covariance(C, 3)`` without LAPACK for the usual (diagonally dominant) case; ``rows``
-    is ``C.tolist()`` (its caller has it already)."""
+    is ``C.tolist()`` (``C`` itself is only needed, and built if not given, when that fails)."""
     (a, b, c), (d, e, f), (g, h, i) = rows
     if not _all_finite(a, b, c, d, e, f, g, h, i):
         return False
@@ -247,7 +261,7 @@ def _is_covariance3(rows: Sequence[Sequence[float]], C: np.ndarray) -> bool:
     # Gershgorin on the lower triangle (what eigvalsh reads): every eigenvalue is at least this.
     if min(a - abs(d) - abs(g), e - abs(d) - abs(h), i - abs(g) - abs(h)) >= 0.0:
         return True
-    return _is_covariance(C, 3)
+    return _is_covariance(np.array(rows, dtype=float) if C is None else C, 3)
 
 
 def _is_definite2(R: np.ndarray) -> bool:
@@ -331,15 +345,18 @@ class PoseFilter:
         self._memo = None
 
     def predict_twist(self, t: float, vx: float, vy: float, wz: float, Q_twist: np.ndarray) -> UpdateResult:
-        """Odometry: the mean body twist over the interval ending at t, and its covariance."""
+        """Odometry: the mean body twist over the interval ending at t, and its covariance (a 3x3
+        array, or a tuple of three tuples of three floats as ``OdometryFeed`` makes them)."""
         self._memo = None
-        Q = np.asarray(Q_twist, dtype=float)
+        rows = _float_rows3(Q_twist)
+        if rows is None:
+            Q = np.asarray(Q_twist, dtype=float)
+            rows = Q.tolist() if Q.shape == (3, 3) else None
         try:
             t, vx, vy, wz = float(t), float(vx), float(vy), float(wz)
         except (TypeError, ValueError):
             t = math.nan
-        rows = Q.tolist() if Q.shape == (3, 3) else None
-        if not _all_finite(t, vx, vy, wz) or rows is None or not _is_covariance3(rows, Q):
+        if not _all_finite(t, vx, vy, wz) or rows is None or not _is_covariance3(rows):
             return UpdateResult(False, math.nan, "odometry rejected: non-finite twist or bad covariance")
         if self._base is None:
             return UpdateResult(False, math.nan, "odometry ignored: the pose is not set")
@@ -434,7 +451,7 @@ class PoseFilter:
             ok = _all_finite(t, d, n0, n1, n2, z0, z1)
         if not ok:
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: non-finite or malformed measurement")
-        R = np.array(meas.R, dtype=float)
+        R = np.asarray(meas.R, dtype=float)  # only read: no copy
         if not _is_definite2(R):
             return UpdateResult(False, math.nan, f"plane {meas.plane_id}: R is not a positive definite 2x2 covariance")
         if math.hypot(n0, n1) < self.config.min_wall_normal:
@@ -608,25 +625,27 @@ class PoseFilter:
             return o.interval
         start = self._odom_t[i - 1] if i > 0 else self._odom_origin
         vx, vy, wz = o.twist
-        Q = [list(r) for r in o.Q]
         a = bisect.bisect_right(self._gyro_t, start)
         b = bisect.bisect_right(self._gyro_t, o.t)
-        if b > a:
-            samples = self._gyro[a:b]
-            wz_g = sum(s[0] for s in samples) / len(samples)
-            # The mean of n samples is not n times better: bias dominates, so keep the sample variance.
-            var_g = sum(s[1] for s in samples) / len(samples)
-            var_w = Q[2][2]
-            if self.config.gyro_mode == "replace" or var_w <= 0.0:
-                w = 0.0
-            else:
-                w = var_g / (var_w + var_g)  # weight of the wheels' wz
-            wz = w * wz + (1.0 - w) * wz_g
-            Q[2][0] *= w
-            Q[2][1] *= w
-            Q[0][2] *= w
-            Q[1][2] *= w
-            Q[2][2] = w * w * var_w + (1.0 - w) ** 2 * var_g
+        if b <= a:  # no gyro sample in the interval (the usual case): the wheels' twist as it came
+            o.interval = (vx, vy, wz, o.Q, o.t - start)
+            return o.interval
+        Q = [list(r) for r in o.Q]
+        samples = self._gyro[a:b]
+        wz_g = sum(s[0] for s in samples) / len(samples)
+        # The mean of n samples is not n times better: bias dominates, so keep the sample variance.
+        var_g = sum(s[1] for s in samples) / len(samples)
+        var_w = Q[2][2]
+        if self.config.gyro_mode == "replace" or var_w <= 0.0:
+            w = 0.0
+        else:
+            w = var_g / (var_w + var_g)  # weight of the wheels' wz
+        wz = w * wz + (1.0 - w) * wz_g
+        Q[2][0] *= w
+        Q[2][1] *= w
+        Q[0][2] *= w
+        Q[1][2] *= w
+        Q[2][2] = w * w * var_w + (1.0 - w) ** 2 * var_g
         o.interval = (vx, vy, wz, tuple(tuple(r) for r in Q), o.t - start)
         return o.interval
 

@@ -139,15 +139,28 @@ class FusedProtection:
 
     def levels(self, P: np.ndarray) -> Tuple[float, float]:
         """(horizontal m, heading rad) protection levels of a fused pose with covariance P."""
+        return self._levels(np.asarray(P, float).tolist())
+
+    def _levels(self, rows: List[List[float]]) -> Tuple[float, float]:
+        """``levels`` of P given as its rows of floats (the control tick has them already)."""
         k_h, k_phi = _multipliers(self.risk)
-        C = np.asarray(P, float)
         if self.systematic_cov is not None:
-            C = C + np.asarray(self.systematic_cov, float)
-        (a, b, _), (c, d, _), (_, _, e) = C.tolist()
+            S = np.asarray(self.systematic_cov, float)
+            if S.shape == (3, 3):
+                # Entry by entry, the sums numpy's P + S would give; only these five are read.
+                (a, b, _), (c, d, _), (_, _, e) = rows
+                (sa, sb, _), (sc, sd, _), (_, _, se) = S.tolist()
+                a, b, c, d, e = a + sa, b + sb, c + sc, d + sd, e + se
+            else:
+                (a, b, _), (c, d, _), (_, _, e) = (np.asarray(rows, float) + S).tolist()
+        else:
+            (a, b, _), (c, d, _), (_, _, e) = rows
         lam = _largest_eigenvalue2(a, 0.5 * (b + c), d)
         return (max(k_h * math.sqrt(max(lam, 0.0)) + self.separation_h, self.prior_bound_h),
                 max(k_phi * math.sqrt(max(e, 0.0)) + self.separation_heading, self.prior_bound_heading))
 
+
+_NO_PROTECTION = FusedProtection()  # the covariance alone (frozen: one instance serves every tick)
 
 COVER_COS = 0.5  # a wall whose normal is within 60 deg of a direction observes it
 
@@ -187,6 +200,14 @@ class QualityReport:
                 "heading_std_deg": math.degrees(self.heading_std), "since_accepted": self.since_accepted,
                 "rejection_ratio": self.rejection_ratio, "horizontal_pl": self.horizontal_pl,
                 "heading_pl_deg": math.degrees(self.heading_pl), "protection_exceeded": self.protection_exceeded}
+
+
+def _finite9(rows: Sequence[Sequence[float]]) -> bool:
+    """All nine entries of a 3x3 covariance's rows are finite (unrolled: it runs every tick)."""
+    (a, b, c), (d, e, f), (g, h, i) = rows
+    isfinite = math.isfinite
+    return (isfinite(a) and isfinite(b) and isfinite(c) and isfinite(d) and isfinite(e) and isfinite(f)
+            and isfinite(g) and isfinite(h) and isfinite(i))
 
 
 def position_std_axis(P: np.ndarray) -> Tuple[float, float]:
@@ -243,7 +264,7 @@ class QualityMonitor:
         age = math.inf if self._last_accepted is None else max(0.0, t - self._last_accepted)
         P = np.asarray(P, dtype=float)
         rows = P.tolist() if P.shape == (3, 3) else None
-        if rows is None or not all(math.isfinite(v) for row in rows for v in row):
+        if rows is None or not _finite9(rows):
             return self._set(LOST, "covariance is not finite", math.inf, math.inf, age, ratio)
         (p00, p01, _), (p10, p11, _), (_, _, p22) = rows
         pos_std = math.sqrt(max(_largest_eigenvalue2(p00, 0.5 * (p01 + p10), p11), 0.0))
@@ -251,28 +272,29 @@ class QualityMonitor:
         if pos_std > 0.5 * min(cfg.localized_pos_std, cfg.lost_pos_std) * min(cfg.hysteresis, 1.0):
             pos_std, axis = position_std_axis(P)
         heading_std = math.sqrt(max(p22, 0.0))
-        hpl, vpl = (protection or FusedProtection()).levels(P)
+        hpl, vpl = (protection or _NO_PROTECTION)._levels(rows)
 
         # Thresholds are tightened by the hysteresis factor for the states we are trying to leave.
-        def scale(level: str) -> float:
-            return cfg.hysteresis if not self._fresh and _RANK[self._state] >= _RANK[level] else 1.0
+        rank = _RANK[self._state]
+        s_lost = cfg.hysteresis if not self._fresh and rank >= _RANK[LOST] else 1.0
+        s_deg = cfg.hysteresis if not self._fresh and rank >= _RANK[DEGRADED] else 1.0
 
         lost_reasons = self._reasons(
-            cfg.lost_after * scale(LOST), cfg.lost_pos_std * scale(LOST), cfg.lost_heading_std_deg * scale(LOST),
-            cfg.lost_rejection_ratio * scale(LOST), age, pos_std, axis, heading_std, ratio, rejected, n)
+            cfg.lost_after * s_lost, cfg.lost_pos_std * s_lost, cfg.lost_heading_std_deg * s_lost,
+            cfg.lost_rejection_ratio * s_lost, age, pos_std, axis, heading_std, ratio, rejected, n)
         over = []
-        if hpl > cfg.horizontal_alert_limit * scale(DEGRADED):
+        if hpl > cfg.horizontal_alert_limit * s_deg:
             over.append(f"horizontal protection level {hpl * 1000:.0f} mm over the {cfg.horizontal_alert_limit * 1000:.0f} "
                         "mm alert limit")
-        if math.degrees(vpl) > cfg.heading_alert_limit_deg * scale(DEGRADED):
+        if math.degrees(vpl) > cfg.heading_alert_limit_deg * s_deg:
             over.append(f"heading protection level {math.degrees(vpl):.1f} deg over the {cfg.heading_alert_limit_deg:g} "
                         "deg alert limit")
         pl = (hpl, vpl, bool(over))
         if lost_reasons:
             return self._set(LOST, "; ".join(lost_reasons), pos_std, heading_std, age, ratio, *pl)
         deg_reasons = self._reasons(
-            cfg.localized_within * scale(DEGRADED), cfg.localized_pos_std * scale(DEGRADED),
-            cfg.localized_heading_std_deg * scale(DEGRADED), cfg.degraded_rejection_ratio * scale(DEGRADED),
+            cfg.localized_within * s_deg, cfg.localized_pos_std * s_deg,
+            cfg.localized_heading_std_deg * s_deg, cfg.degraded_rejection_ratio * s_deg,
             age, pos_std, axis, heading_std, ratio, rejected, n) + over
         if deg_reasons:
             return self._set(DEGRADED, "; ".join(deg_reasons), pos_std, heading_std, age, ratio, *pl)
