@@ -44,9 +44,6 @@ class EncoderOdometry:
 
     def update(self, ticks: Sequence[int], board_s: float, t_host: float) -> Optional[WheelOdometry]:
         """A report's ticks at board time ``board_s`` (s, unwrapped) sampled at host time ``t_host``."""
-        prev = self._prev_ticks
-        if type(ticks) is tuple and len(ticks) == 4 and prev is not None and len(prev) == 4 and len(self._cum) == 4:
-            return self._update4(ticks, board_s, t_host, prev)
         ticks = tuple(int(v) for v in ticks)
         if self._prev_ticks is None:
             self._prev_ticks, self._prev_board_s = ticks, board_s
@@ -63,31 +60,6 @@ class EncoderOdometry:
         self._cum = [c + x for c, x in zip(self._cum, d)]
         return WheelOdometry(t=t_host, angles=tuple(c * k for c in self._cum),
                              speeds=tuple(x * k / dt for x in d), dt=dt, t_board=board_s)
-
-    def _update4(self, ticks: Tuple[int, ...], board_s: float, t_host: float,
-                 prev: Tuple[int, ...]) -> Optional[WheelOdometry]:
-        """``update`` of a four-wheel report after the first, written out: the same integer
-        differences (``delta_i32``) and float products, without a generator per wheel a hundred
-        times a second."""
-        n0, n1, n2, n3 = int(ticks[0]), int(ticks[1]), int(ticks[2]), int(ticks[3])
-        dt = board_s - self._prev_board_s
-        if dt <= 0.0:
-            return None
-        k = self.rad_per_tick
-        o0, o1, o2, o3 = prev
-        d0 = ((n0 - o0 + 0x80000000) & 0xFFFFFFFF) - 0x80000000
-        d1 = ((n1 - o1 + 0x80000000) & 0xFFFFFFFF) - 0x80000000
-        d2 = ((n2 - o2 + 0x80000000) & 0xFFFFFFFF) - 0x80000000
-        d3 = ((n3 - o3 + 0x80000000) & 0xFFFFFFFF) - 0x80000000
-        self._prev_ticks, self._prev_board_s = (n0, n1, n2, n3), board_s
-        if max(abs(d0), abs(d1), abs(d2), abs(d3)) * k > 3.0 * self.max_wheel_speed * dt + 20 * k:
-            self.implausible += 1
-            return None
-        c0, c1, c2, c3 = self._cum
-        c0, c1, c2, c3 = c0 + d0, c1 + d1, c2 + d2, c3 + d3
-        self._cum = [c0, c1, c2, c3]
-        return WheelOdometry(t=t_host, angles=(c0 * k, c1 * k, c2 * k, c3 * k),
-                             speeds=(d0 * k / dt, d1 * k / dt, d2 * k / dt, d3 * k / dt), dt=dt, t_board=board_s)
 
     def speed_variance(self, dt: float) -> float:
         return quantisation_variance(self.ticks_per_rev, dt)

@@ -60,18 +60,15 @@ class MecanumKinematics:
 
     def forward(self, wheels: ArrayLike) -> np.ndarray:
         """Twist (vx, vy, wz) of wheel speeds (..., 4) in rad/s: least squares over the 4 wheels."""
-        if isinstance(wheels, tuple) and len(wheels) == 4 and not isinstance(wheels[0], (tuple, list, np.ndarray)):
-            # One odometry sample, a hundred times a second on the event loop: floats cost a
-            # fraction of numpy's per-call overhead.
-            w0, w1, w2, w3 = float(wheels[0]), float(wheels[1]), float(wheels[2]), float(wheels[3])
-            q = 0.25 * self.r
-            return np.array([q * (w0 + w1 + w2 + w3), q * (w1 + w2 - w0 - w3), q * (w1 + w3 - w0 - w2) / self.L])
+        if _one_sample(wheels):
+            return np.array(self.forward_floats(wheels))
         return np.asarray(wheels, dtype=float) @ self.F.T
 
     def forward_floats(self, wheels: ArrayLike) -> Tuple[float, float, float]:
         """``forward`` of one sample as a tuple of floats (what the odometry feed hands the filter)."""
-        if isinstance(wheels, tuple) and len(wheels) == 4 and not isinstance(wheels[0], (tuple, list, np.ndarray)):
-            # ``forward``'s arithmetic without the array it would build and the filter take apart again.
+        if _one_sample(wheels):
+            # One odometry sample, a hundred times a second on the event loop: floats cost a
+            # fraction of numpy's per-call overhead (and no array for the filter to take apart).
             w0, w1, w2, w3 = float(wheels[0]), float(wheels[1]), float(wheels[2]), float(wheels[3])
             q = 0.25 * self.r
             return q * (w0 + w1 + w2 + w3), q * (w1 + w2 - w0 - w3), q * (w1 + w3 - w0 - w2) / self.L
@@ -126,3 +123,8 @@ class MecanumKinematics:
 
 def make_kinematics(config: ChassisConfig) -> MecanumKinematics:
     return MecanumKinematics.from_config(config)
+
+
+def _one_sample(wheels: ArrayLike) -> bool:
+    """A tuple of four wheel speeds (one sample), not a stack of them."""
+    return isinstance(wheels, tuple) and len(wheels) == 4 and not isinstance(wheels[0], (tuple, list, np.ndarray))
