@@ -53,7 +53,7 @@ from robot.base.geometry import compose_se2, compose_se2_jacobians, invert_se2, 
 from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, RobotConfig
 from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
-from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
+from robot.localization.roi import CameraGrid, PlaneView, predict_plane_views, rasterize_views
 from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import PlaneMap
 
@@ -582,7 +582,12 @@ class _Scorer:
                 T = cam.T_robot_camera
                 z_robot = (p_c @ T[:3, :3].T + T[:3, 3])[:, 2].reshape(h, w)
                 valid = (z > robot.localizer.min_range) & (z < max_range) & (z_robot > 0.05)
-                self.items.append((cam, grid, z, valid, rel, view))
+                # Returns beyond the range the walls are scored in are too noisy to place a wall,
+                # and the floor says nothing of x, y or heading; but both are free space: a pose
+                # that puts a wall nearer, in front of them, is seeing through it (the right pose
+                # sees them through an opening the map has, or below a wall's foot).
+                free = (z > robot.localizer.min_range) & ((z >= max_range) | (z_robot <= 0.05))
+                self.items.append((cam, grid, z, valid, free if free.any() else None, rel, view))
                 self.most.append((self._most(z[valid], False), self._most(z[valid], True)))
         self.last_cut = False
 
@@ -614,7 +619,7 @@ class _Scorer:
         panels: Dict[str, List[float]] = {}  # map wall -> [log-likelihood gain, pixels] if a panel hides it
         self.last_cut = False
         most_left = sum(m[1 if coarse else 0] for m in self.most) if floor > -math.inf else 0.0
-        for item, (cam, grid, z, valid, rel, view) in enumerate(self.items):
+        for item, (cam, grid, z, valid, free, rel, view) in enumerate(self.items):
             if floor > -math.inf:
                 # Every term of a pixel, and a panel's gain on it, is at most its peak: the
                 # score can reach at most this (a panel's prior left out, which only lowers it).
@@ -631,22 +636,31 @@ class _Scorer:
             views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
             cols, rows, _, _ = grid.rays
+            edges = None
+            if free is not None:
+                edges = _label_edges(label)
+                n_free = _free_see_through(label, edges, free, views, z, cols, rows, coarse)
+                total += SEE_THROUGH * n_free
+                through += n_free
+                scored += n_free
             has = (label >= 0) & valid
             if not has.any():
                 continue
             r_idx, c_idx = np.nonzero(has)
-            edge = _label_edges(label)[r_idx, c_idx]
+            edge = (_label_edges(label) if edges is None else edges)[r_idx, c_idx]
             lab = label[r_idx, c_idx]
             # each pixel's plane by table lookup (a list of rows built pixel by pixel was a tenth
             # of a relocalization's CPU on a 300-plane map)
-            pis = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)[lab]
+            table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
+            pis = table[lab]
             ray = np.stack([cols[c_idx], rows[r_idx], np.ones(len(r_idx))], axis=1)
             denom = np.einsum("ij,ij->i", pis[:, :3], ray)
             with np.errstate(divide="ignore", invalid="ignore"):
                 z_pred = -pis[:, 3] / denom
             zm = z[r_idx, c_idx]
             sigma = _depth_sigma(zm, coarse)
-            res = (zm - z_pred) / sigma
+            res_own = (zm - z_pred) / sigma
+            res, lab_seen = _edge_alternatives(label, table, r_idx, c_idx, edge, lab, res_own, zm, sigma, cols, rows)
             inlier = np.abs(res) < 3.0
             # Behind a predicted wall's edge is where a depth jump's flying pixels land (between the
             # edge and what lies beyond it): no evidence that the wall is not there.
@@ -657,12 +671,12 @@ class _Scorer:
             ll = np.where(behind, SEE_THROUGH, _log_ratio(_density(res, sigma), self.max_range))
             total += float(ll.sum())
             agree += int(np.count_nonzero(inlier))
-            nearer = res < -1.0  # (the offset window decides; a coarse score's sigma is decimetres)
+            nearer = res_own < -1.0  # (the offset window decides; a coarse score's sigma is decimetres)
             if nearer.any():
                 self._panel_gains(panels, views, lab, nearer, zm, ray, denom, pis[:, 3], sigma, ll, inlier)
             through += int(np.count_nonzero(behind))
             scored += len(res)
-            per_view = np.bincount(lab[inlier], minlength=len(views))
+            per_view = np.bincount(lab_seen[inlier], minlength=len(views))
             for k in np.nonzero(per_view)[0]:
                 pid = views[int(k)].plane_id
                 seen[pid] = seen.get(pid, 0) + int(per_view[k])
@@ -1088,6 +1102,59 @@ def _label_edges(label: np.ndarray) -> np.ndarray:
     edge[:, 1:] |= diff_h
     edge[:, :-1] |= diff_h
     return edge
+
+
+def _edge_alternatives(label: np.ndarray, table: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray, edge: np.ndarray,
+                       lab: np.ndarray, res: np.ndarray, zm: np.ndarray, sigma: np.ndarray, cols: np.ndarray,
+                       rows: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Residuals (in std) and walls of the pixels, where a pixel next to another predicted wall
+    is taken on whichever of the two its depth fits better.
+
+    A scored grid pixel stands for a cell a stride wide: where a predicted edge crosses the cell,
+    which side its centre falls on is a matter of millimetres of pose, and the surface beyond the
+    edge is as likely as the own one. Scoring it on its own wall alone cost the pose that is right
+    a few nats per edge pixel against a rival whose edges lie elsewhere."""
+    if not edge.any():
+        return res, lab
+    e = np.flatnonzero(edge)
+    re, ce, le = r_idx[e], c_idx[e], lab[e]
+    best = res[e].copy()
+    best_lab = le.copy()
+    h, w = label.shape
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ln = label[np.clip(re + dr, 0, h - 1), np.clip(ce + dc, 0, w - 1)]
+        ok = np.flatnonzero((ln >= 0) & (ln != le))
+        if not len(ok):
+            continue
+        pn = table[ln[ok]]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zp = -pn[:, 3] / (pn[:, 0] * cols[ce[ok]] + pn[:, 1] * rows[re[ok]] + pn[:, 2])
+            rn = (zm[e[ok]] - zp) / sigma[e[ok]]
+        better = (zp > 0.0) & (np.abs(rn) < np.abs(best[ok]))
+        best[ok[better]] = rn[better]
+        best_lab[ok[better]] = ln[ok[better]]
+    res = res.copy()
+    res[e] = best
+    lab = lab.copy()
+    lab[e] = best_lab
+    return res, lab
+
+
+def _free_see_through(label: np.ndarray, edges: np.ndarray, free: np.ndarray, views: List[PlaneView], z: np.ndarray,
+                      cols: np.ndarray, rows: np.ndarray, coarse: bool) -> int:
+    """How many of the returns that are not scored (``free``: beyond the range, or on the floor)
+    lie behind the wall a pose predicts there, by the same test as the scored ones (three of the
+    score's depth std, not at a wall's edge)."""
+    at = free & (label >= 0) & ~edges
+    if not at.any():
+        return 0
+    r_idx, c_idx = np.nonzero(at)
+    pis = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)[label[r_idx, c_idx]]
+    denom = pis[:, 0] * cols[c_idx] + pis[:, 1] * rows[r_idx] + pis[:, 2]
+    zm = z[r_idx, c_idx]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_pred = -pis[:, 3] / denom
+    return int(np.count_nonzero((z_pred > 0.0) & (zm - z_pred >= 3.0 * _depth_sigma(zm, coarse))))
 
 
 def _depth_sigma(zm: np.ndarray, coarse: bool) -> np.ndarray:
