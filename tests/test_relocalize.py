@@ -342,11 +342,11 @@ class _Profile:
     """A scorer stand-in: the score along x only, from ``f``."""
 
     def __init__(self, f):
-        self.f, self.last_see_through, self.last_plain = f, 0.0, 0.0
+        self.f, self.last_see_through, self.last_plain, self.last_two = f, 0.0, 0.0, 0.0
 
     def score(self, pose, rels=None):
         s = self.f(pose[0])
-        self.last_plain = s
+        self.last_plain = self.last_two = s
         return s, 0.9, ["w"]
 
 

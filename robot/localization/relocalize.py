@@ -102,6 +102,15 @@ FEW_WALLS_BY = 2
 # well under UNIQUE_MARGIN, so that a pose needing a panel and one that does not stay within
 # reach of each other; and a panel never wins a unique verdict, see ``relocalize``).
 PANEL_PRIOR = 10.0
+# A second hidden wall. Scored with one panel, a room with a panel along one wall and boards
+# against the opposite one lost to a room 13 cm narrower where the panel is that room's wall, by
+# 490 nats (a wrong unique 3.6 m off in fzk_haus_ground; the second panel gains 770 nats). But a
+# second panel in the score itself let a pose turned 90 deg in a clean room explain two walls
+# as panels and win (a wrong unique), and a place 9 m off explain clutter as one and push the
+# true pose out of an ambiguous list. So the score keeps one, and a second, at this prior (a
+# second hidden wall in one view is much rarer than a first), only keeps a rival in the running
+# against the best: it never ranks a pose higher, never makes a unique verdict.
+SECOND_PANEL_PRIOR = 2.0 * UNIQUE_MARGIN
 PANEL_MIN_OFFSET = 0.02  # m: nearer is the wall itself (as built)
 PANEL_MAX_OFFSET = 0.5  # m: what leans on or stands against a wall
 PANEL_MIN_PIXELS = 8  # grid pixels
@@ -171,6 +180,7 @@ class Hypothesis:
     hidden: Optional[Tuple[str, float, float, float]] = None
     free: bool = True  # (a rival) along a direction no other wall fixes
     plain_score: float = math.nan  # its score pixel by pixel, without a panel's credit
+    two_panel_score: float = math.nan  # its score with a second wall hidden too (SECOND_PANEL_PRIOR)
     panels: List[Hypothesis] = field(default_factory=list)  # such rivals of this one (scored)
     # The panels this pose cannot exclude (set on the answers of a verdict): each {"plane", "up_to_m", "direction"}.
     hidden_walls: List[Dict] = field(default_factory=list)
@@ -560,12 +570,14 @@ class _Scorer:
     def __init__(self, robot: RobotConfig, plane_map: PlaneMap, views: Sequence[View], index: PlaneIndex,
                  max_range: float, stride: int = SCORE_STRIDE):
         self.robot, self.map, self.index, self.max_range = robot, plane_map, index, max_range
+        self.coplanar = coplanar_groups(plane_map)
         self.items = []
         # Per item, the most its pixels can add to a score (fine, coarse): each pixel at best lies
         # exactly on its predicted wall or panel (see score's floor).
         self.most: List[Tuple[float, float]] = []
         self.last_see_through = 0.0
         self.last_plain = 0.0
+        self.last_two = 0.0
         for view, (frames, rel) in enumerate(views):
             for f in frames:
                 cam = robot.camera(f.camera)
@@ -617,14 +629,19 @@ class _Scorer:
         total, agree, scored, through = 0.0, 0, 0, 0
         seen: Dict[str, int] = {}
         panels: Dict[str, List[float]] = {}  # map wall -> [log-likelihood gain, pixels] if a panel hides it
+        # A hiding panel is one object with one offset from its wall in every view and camera:
+        # the pixels in front of walls are kept until all are in, and each wall's offset is
+        # their median over all of them (each frame taking its own offset let a room of another
+        # size explain a wall as a panel here and as the wall there: a wrong unique 3.6 m off).
+        in_front: List[Tuple] = []
+        gain_most = 0.0  # the most a panel can gain on the frames scored so far (for ``floor``)
         self.last_cut = False
         most_left = sum(m[1 if coarse else 0] for m in self.most) if floor > -math.inf else 0.0
         for item, (cam, grid, z, valid, free, rel, view) in enumerate(self.items):
             if floor > -math.inf:
                 # Every term of a pixel, and a panel's gain on it, is at most its peak: the
                 # score can reach at most this (a panel's prior left out, which only lowers it).
-                gain = max((v[0] for v in panels.values()), default=0.0)
-                bound = (total + max(gain, 0.0) + most_left) / PIXEL_CORRELATION
+                bound = (total + gain_most + most_left) / PIXEL_CORRELATION
                 if bound < floor:
                     self.last_cut = True
                     return bound, 0.0, []
@@ -673,7 +690,12 @@ class _Scorer:
             agree += int(np.count_nonzero(inlier))
             nearer = res_own < -1.0  # (the offset window decides; a coarse score's sigma is decimetres)
             if nearer.any():
-                self._panel_gains(panels, views, lab, nearer, zm, ray, denom, pis[:, 3], sigma, ll, inlier)
+                in_front.append((views, lab, nearer, zm, ray, denom, pis[:, 3], sigma, ll, inlier))
+                if floor > -math.inf:
+                    # A panel's pixels are any in front (one standing before a neighbouring wall
+                    # too), each gaining at most up to its peak.
+                    peak = _log_ratio(_density(np.zeros(len(zm)), sigma), self.max_range)
+                    gain_most += float(np.maximum(peak - ll, 0.0)[nearer].sum())
             through += int(np.count_nonzero(behind))
             scored += len(res)
             per_view = np.bincount(lab_seen[inlier], minlength=len(views))
@@ -685,45 +707,69 @@ class _Scorer:
             total += NOTHING_PREDICTED * float(np.count_nonzero(valid & (label < 0)))  # (zero: the baseline)
         # One wall at most may be hidden by a surface standing parallel in front of it (a panel,
         # stacked boards): its pixels are one object, not as many independent pieces of clutter.
-        gain, explained = max(panels.values(), default=(0.0, 0))
-        bonus = gain / PIXEL_CORRELATION - PANEL_PRIOR
+        if in_front:
+            self._panel_gains(panels, in_front)
         self.last_plain = total / PIXEL_CORRELATION  # pixel by pixel, no panel taken
-        if bonus > 0.0:
-            total += gain
-            agree += int(explained)
+        ranked = sorted(panels.values(), key=lambda v: -v[0])
+        prior = 0.0
+        if ranked and ranked[0][0] / PIXEL_CORRELATION > PANEL_PRIOR:
+            total += ranked[0][0]
+            agree += int(ranked[0][1])
+            prior = PANEL_PRIOR
+        score = total / PIXEL_CORRELATION - prior
+        # With a second wall hidden as well: what keeps a rival in the running (see relocalize).
+        self.last_two = score
+        if prior and len(ranked) > 1 and ranked[1][0] / PIXEL_CORRELATION > SECOND_PANEL_PRIOR:
+            self.last_two = score + ranked[1][0] / PIXEL_CORRELATION - SECOND_PANEL_PRIOR
         support = agree / scored if scored else 0.0
         self.last_see_through = through / scored if scored else 0.0
         planes = [p for p, n in sorted(seen.items(), key=lambda kv: -kv[1]) if n >= 5]
-        return total / PIXEL_CORRELATION - (PANEL_PRIOR if bonus > 0.0 else 0.0), support, planes
+        return score, support, planes
 
-    def _panel_gains(self, panels: Dict[str, List[float]], views, lab: np.ndarray, front: np.ndarray, zm: np.ndarray,
-                     ray: np.ndarray, denom: np.ndarray, d: np.ndarray, sigma: np.ndarray, ll: np.ndarray,
-                     inlier: np.ndarray) -> None:
+    def _panel_gains(self, panels: Dict[str, List[float]], in_front: List[Tuple]) -> None:
         """For each predicted wall with depth in front of it: what the pixels in front of their
-        walls gain if a surface parallel to that wall, at the median offset of that depth (within
-        ``PANEL_MAX_OFFSET``), hides it. The surface is one object: where it also stands in front
-        of a neighbouring wall (a panel that spans a room ends at the next wall), those pixels
-        are on it too."""
-        s = zm * denom + d  # the measured point's distance in front of its predicted wall
-        idx = np.flatnonzero(front)
-        for k in np.unique(lab[idx]).tolist():
-            off = s[idx[lab[idx] == k]]
-            ok = (off > PANEL_MIN_OFFSET) & (off <= PANEL_MAX_OFFSET)
-            if np.count_nonzero(ok) < PANEL_MIN_PIXELS:
-                continue
-            delta = float(np.median(off[ok]))
-            pi = np.asarray(views[k].pi_camera, float)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                z_alt = -(pi[3] - delta) / (ray[idx] @ pi[:3])
-                r_alt = (zm[idx] - z_alt) / sigma[idx]
-            on = (np.abs(r_alt) < 3.0) & (z_alt > 0.0)
-            if not on.any():
-                continue
-            sel = idx[on]
-            ll_alt = _log_ratio(_density(r_alt[on], sigma[sel]), self.max_range)
-            acc = panels.setdefault(views[k].plane_id, [0.0, 0])
-            acc[0] += float(np.maximum(ll_alt - ll[sel], 0.0).sum())
-            acc[1] += int(np.count_nonzero(~inlier[sel]))  # newly explained (for the support)
+        walls gain if a surface parallel to that wall, at the median offset of that depth over
+        every view and camera (within ``PANEL_MAX_OFFSET``), hides it. The surface is one object:
+        where it also stands in front of a neighbouring wall (a panel that spans a room ends at
+        the next wall), those pixels are on it too; walls in one plane (a wall's segments between
+        its doors) are one wall to it. ``in_front``: per frame, (views, lab, front,
+        zm, ray, denom, d, sigma, ll, inlier) of its scored pixels, ``front`` those in front."""
+        offsets: Dict[str, List[np.ndarray]] = {}
+        for views, lab, front, zm, _ray, denom, d, _sigma, _ll, _inlier in in_front:
+            s = zm * denom + d  # the measured point's distance in front of its predicted wall
+            idx = np.flatnonzero(front)
+            for k in np.unique(lab[idx]).tolist():
+                off = s[idx[lab[idx] == k]]
+                offsets.setdefault(self.coplanar.get(views[k].plane_id, views[k].plane_id), []).append(
+                    off[(off > PANEL_MIN_OFFSET) & (off <= PANEL_MAX_OFFSET)])
+        delta_of: Dict[str, float] = {}
+        for pid, parts in offsets.items():
+            ok = np.concatenate(parts)
+            if len(ok) >= PANEL_MIN_PIXELS:
+                delta_of[pid] = float(np.median(ok))
+        if not delta_of:
+            return
+        for views, lab, front, zm, ray, _denom, _d, sigma, ll, inlier in in_front:
+            idx = np.flatnonzero(front)
+            done = set()
+            for k in np.unique(lab[idx]).tolist():
+                g = self.coplanar.get(views[k].plane_id, views[k].plane_id)
+                delta = delta_of.get(g)
+                if delta is None or g in done:
+                    continue  # (walls in one plane: one panel, its pixels counted once)
+                done.add(g)
+                pi = np.asarray(views[k].pi_camera, float)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    z_alt = -(pi[3] - delta) / (ray[idx] @ pi[:3])
+                    r_alt = (zm[idx] - z_alt) / sigma[idx]
+                on = (np.abs(r_alt) < 3.0) & (z_alt > 0.0)
+                if not on.any():
+                    continue
+                sel = idx[on]
+                ll_alt = _log_ratio(_density(r_alt[on], sigma[sel]), self.max_range)
+                acc = panels.setdefault(g, [0.0, 0])
+                acc[0] += float(np.maximum(ll_alt - ll[sel], 0.0).sum())
+                acc[1] += int(np.count_nonzero(~inlier[sel]))  # newly explained (for the support)
 
 
 # -- 5. the whole search --------------------------------------------------------------------------
@@ -859,7 +905,10 @@ class Relocalizer:
             h.panels = self._panel_rivals(h, scorer, coarse, fixed=h is best, enough=best.score - margin)
 
         def reach(h: Hypothesis) -> float:
-            return h.score if h is best else h.top_score
+            if h is best:
+                return h.score
+            two = h.two_panel_score
+            return max(h.top_score, two) if math.isfinite(two) else h.top_score
 
         def reach_plain(h: Hypothesis) -> float:
             return max([_plain(h)] + ([] if h is best else [_plain(v) for v in h.panels]))
@@ -874,6 +923,7 @@ class Relocalizer:
         # ambiguous every view where the true pose itself needs a panel and a place metres away
         # needs one too (measured: such a place 218 nats behind with both credited and 226
         # pixel by pixel, "within the margin" only by crediting it alone).
+        # A second hidden wall (SECOND_PANEL_PRIOR) likewise: in a rival's reach, never in the best's.
         lead_from = _plain(best)  # (never above its score)
         close = [h for h in hyps_out if h is best or reach(h) >= best.score - margin
                  or reach_plain(h) >= lead_from - margin]
@@ -1019,7 +1069,7 @@ class Relocalizer:
         s0, support0, planes0 = scorer.score(pose)
         through0 = scorer.last_see_through
         unrefined = Hypothesis(pose[0], pose[1], pose[2], cov0, s0, support0, planes0, False, res.status, through0,
-                               plain_score=scorer.last_plain)
+                               plain_score=scorer.last_plain, two_panel_score=scorer.last_two)
         if res.status == "no_planes":
             return unrefined
         p = compose_se2((res.x, res.y, float(wrap_angle(res.phi))), back)
@@ -1029,7 +1079,8 @@ class Relocalizer:
             return unrefined
         cov = view_covariance((res.x, res.y, res.phi), np.asarray(res.cov), rel)
         return Hypothesis(p[0], p[1], p[2], cov, s, support, planes, True, res.status, scorer.last_see_through, rels,
-                          plain_score=scorer.last_plain, loose=_loose_position(res.status, res.unobservable))
+                          plain_score=scorer.last_plain, loose=_loose_position(res.status, res.unobservable),
+                          two_panel_score=scorer.last_two)
 
     def _pin(self, best: Hypothesis, scorer: _Scorer, margin: float) -> Optional[Hypothesis]:
         """``best`` with its loose direction of position fixed by the views' score, or None.
@@ -1059,7 +1110,8 @@ class Relocalizer:
         keep = np.eye(3) - np.outer(u, u)
         cov = keep @ np.asarray(best.cov, float) @ keep + half * half * np.outer(u, u)
         return replace(best, x=p[0], y=p[1], cov=cov, score=s, support=support, planes=planes,
-                       see_through=scorer.last_see_through, plain_score=scorer.last_plain, pinned=half)
+                       see_through=scorer.last_see_through, plain_score=scorer.last_plain, pinned=half,
+                       two_panel_score=scorer.last_two)
 
     def _refine_views(self, views: Sequence[View], pose: Pose) -> List[Pose]:
         """Each view's pose relative to the first, re-estimated by the localizer from ``pose`` and the
@@ -1138,6 +1190,42 @@ def _edge_alternatives(label: np.ndarray, table: np.ndarray, r_idx: np.ndarray, 
     lab = lab.copy()
     lab[e] = best_lab
     return res, lab
+
+
+COPLANAR_ANGLE = math.radians(0.5)
+COPLANAR_OFFSET = 0.01  # m
+
+
+def coplanar_groups(plane_map: PlaneMap) -> Dict[str, str]:
+    """Each map wall's group of walls in one plane (the same side of one wall, cut by its doors
+    into segments): the id of the group's first wall, by wall id. Computed once per map."""
+    cached = plane_map.__dict__.get("_coplanar_groups")
+    if cached is not None:
+        return cached
+    by_key: Dict[Tuple[int, int], List[Tuple[np.ndarray, float, str]]] = {}
+    groups: Dict[str, str] = {}
+    for p in plane_map.planes:
+        n = np.asarray(p.normal, float)
+        # Binned by heading and offset; a plane near a bin's border is looked up in the
+        # neighbouring bins too, so the bins never split a group.
+        a = math.atan2(n[1], n[0])
+        ka, kd = int(math.floor(a / COPLANAR_ANGLE)), int(math.floor(p.d / COPLANAR_OFFSET))
+        found = None
+        if abs(n[2]) < 0.5:  # walls only: the floor and ceiling hide nothing here
+            for da in (-1, 0, 1):
+                for dd in (-1, 0, 1):
+                    for n2, d2, g in by_key.get(((ka + da) % int(round(2 * math.pi / COPLANAR_ANGLE)), kd + dd), ()):
+                        if float(n @ n2) > math.cos(COPLANAR_ANGLE) and abs(p.d - d2) < COPLANAR_OFFSET:
+                            found = g
+                            break
+                    if found is not None:
+                        break
+                if found is not None:
+                    break
+            by_key.setdefault((ka % int(round(2 * math.pi / COPLANAR_ANGLE)), kd), []).append((n, float(p.d), found or p.id))
+        groups[p.id] = found or p.id
+    plane_map.__dict__["_coplanar_groups"] = groups
+    return groups
 
 
 def _free_see_through(label: np.ndarray, edges: np.ndarray, free: np.ndarray, views: List[PlaneView], z: np.ndarray,
