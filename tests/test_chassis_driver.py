@@ -618,6 +618,35 @@ def test_a_poll_looks_at_the_link_and_pushes_the_monitors_timer_back():
     assert arun(scenario()) == []
 
 
+def test_the_monitors_own_look_handles_the_held_batches_before_judging_the_link():
+    """A consumer that never polls: the timer's look empties the inbox first, so reports the
+    reader holds are not taken for silence."""
+    ch = SerialChassis(CFG, port="loop://")
+    ch._write = lambda data: True
+
+    async def scenario():
+        ch._loop = asyncio.get_running_loop()
+        s = ch._session
+        s.ready, s.lost_reason, s.last_report_rx = True, None, time.monotonic() - 10.0  # silent but for the inbox
+        ch._last_tx = time.monotonic() + 3600.0
+
+        def on_messages(gen, t_rx, msgs):
+            s.last_report_rx = time.monotonic() + 3600.0
+
+        ch._on_messages = on_messages
+        ch._inbox.append((ch._gen, time.monotonic(), ["report"]))
+        task = asyncio.ensure_future(ch._monitor())
+        await asyncio.sleep(0)
+        ch._look()  # what its timer calls
+        healthy = not ch._lost.done() and not ch._inbox
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return healthy
+
+    assert arun(scenario())
+
+
 def test_the_link_monitor_returns_the_loss_sends_heartbeats_and_stops_its_timer_when_cancelled():
     """The monitor looks every tick from a timer callback: it returns the first loss reason
     (a session marked lost, then silence), sends a heartbeat when nothing went out for

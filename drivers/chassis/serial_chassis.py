@@ -307,6 +307,8 @@ class SerialChassis(Chassis):
         if self._look_timer is not None:
             self._look_timer.cancel()
             self._look_timer = None
+        if self._inbox:  # (from the timer: a consumer that does not poll) the reports held decide
+            self._drain()
         session = self._session
         try:
             now = time.monotonic()
