@@ -6,11 +6,12 @@ the I/O and the link supervision around it.
 
 Threads and the loop: one reader thread per open port blocks in ``serial.read`` and decodes (the
 codec is pure), then puts the messages with their host receive time in an inbox that the asyncio
-loop empties. Routine batches (ACKs, encoder reports) wait there for the consumer's ``poll`` (the
-controller polls at the start of every control tick) or at most ``MAX_HOLD``; anything else wakes
-the loop at once with ``call_soon_threadsafe`` (``_read_loop``). Everything else runs on the loop:
-the state machine, odometry, and the writes, which are non-blocking (a frame the OS will not take
-is dropped and counted, never queued: a late speed command is worse than none).
+loop empties. Routine batches (encoder reports, ACKs, STATUS) wait there for the consumer's
+``poll`` (the controller polls at the start of every control tick) or at most ``MAX_HOLD``;
+anything else wakes the loop at once with ``call_soon_threadsafe`` (``_read_loop``). Everything
+else runs on the loop: the state machine, odometry, and the writes, which are non-blocking (a
+frame the OS will not take is dropped and counted, never queued: a late speed command is worse
+than none).
 
 Safety rules this class keeps (tests/test_chassis_driver.py and the chassis contract suite prove
 them against the emulator):
