@@ -485,15 +485,26 @@ def test_loopback_rehandshakes_after_a_board_reboot_with_continuous_angles():
     assert after[-1].angles[0] > before[-1].angles[0] + 1.0
 
 
-def test_the_reader_holds_batches_of_only_acks_for_the_next_batch_that_matters():
-    """The board ACKs every speed command in a frame of its own: the reader thread hands those
-    to the loop with the next batch that asks something of it (a report), or when the line goes
-    quiet, each batch with its own receive time and in order; never one wake-up per ACK. The
-    ACK of the STOP that ``close`` waits for goes at once."""
+def test_the_reader_leaves_routine_batches_for_the_next_poll_and_wakes_the_loop_for_the_rest():
+    """The board ACKs every speed command, reports the encoders a hundred times a second and its
+    STATUS ten times: the reader thread leaves batches of only those in the inbox for the
+    consumer's next poll, and wakes the loop (one drain) for anything else (a NACK), when the line goes quiet, when the oldest has
+    waited MAX_HOLD or MAX_HELD_BATCHES are waiting, and for the ACK of the STOP that ``close``
+    waits for. Every batch keeps its receive time and its place in the order."""
+    from drivers.chassis import serial_chassis
+
     ch = SerialChassis(CFG, port="loop://")
     ack = [fp.Ack(ref_id=fp.SetWheelSpeeds.MSG_ID, ref_seq=k, seq=k) for k in range(3)]
     report = fp.EncoderReport(t_us=1000, ticks=(1, 2, 3, 4), seq=9)
-    chunks = [fp.encode(ack[0]), fp.encode(ack[1]), fp.encode(report), fp.encode(ack[2]), b""]
+    status = fp.Status(battery_mv=12000, motor_faults=0, flags=0, rx_errors=0, seq=10)
+    nack = fp.Nack(ref_id=fp.SetWheelSpeeds.MSG_ID, ref_seq=1, reason=fp.NackReason.NO_SESSION, seq=11)
+    clock = [100.0]
+
+    class Time:  # the reader's clock: advanced by hand, so no test outcome depends on the machine's speed
+        @staticmethod
+        def monotonic():
+            clock[0] += 0.001
+            return clock[0]
 
     class Line:  # what pyserial's read gives: one chunk per read, b"" for a read that timed out
         in_waiting = 0
@@ -505,51 +516,135 @@ def test_the_reader_holds_batches_of_only_acks_for_the_next_batch_that_matters()
             if not self.chunks:
                 stop.set()
                 return b""
-            return self.chunks.pop(0)
+            chunk = self.chunks.pop(0)
+            if chunk is None:  # a pause on the line of longer than MAX_HOLD, with bytes after it
+                clock[0] += MAX_HOLD
+                chunk = self.chunks.pop(0)
+            return chunk
 
     class Loop:
         def __init__(self):
             self.calls = []
 
         def call_soon_threadsafe(self, fn, *args):
-            self.calls.append((fn.__name__, args))
+            self.calls.append((fn.__name__, args, [m for _, _, msgs in ch._inbox for m in msgs]))
 
     def run(chunks):
         ch._loop = Loop()
+        ch._inbox.clear()
+        ch._drain_posted = False
         stop.clear()
         ch._read_loop(Line(chunks), 1, stop)
         return ch._loop.calls
 
-    stop = threading.Event()
-    calls = run(chunks)
-    assert [name for name, _ in calls] == ["_on_batches", "_on_batches"]
-    (_, first), (_, second) = calls
-    assert [m for _, msgs in first[1] for m in msgs] == [ack[0], ack[1], report]
-    times = [t for t, _ in first[1]]
-    assert times == sorted(times) and len(set(times)) == 3  # each batch keeps its receive time
-    assert [m for _, msgs in second[1] for m in msgs] == [ack[2]]  # the quiet line let it go
-    # a report alone goes as before, in one call
-    assert [name for name, _ in run([fp.encode(report)])] == ["_on_messages"]
-    # while close() waits for the STOP's ACK, ACKs are not held
-    ch._stop_ack = (0, None)
-    assert [name for name, _ in run([fp.encode(ack[0])])] == ["_on_messages"]
-    ch._stop_ack = None
-    # never more than MAX_HELD_ACK_BATCHES batches held
-    from drivers.chassis.serial_chassis import MAX_HELD_ACK_BATCHES
-    many = [fp.encode(fp.Ack(ref_id=2, ref_seq=k % 256, seq=k % 256)) for k in range(MAX_HELD_ACK_BATCHES + 1)]
-    calls = run(many)
-    assert [len(args[1]) for _, args in calls] == [MAX_HELD_ACK_BATCHES + 1]
+    from drivers.chassis.serial_chassis import MAX_HELD_BATCHES, MAX_HOLD
+
+    saved = serial_chassis.time
+    serial_chassis.time = Time
+    try:
+        stop = threading.Event()
+        calls = run([fp.encode(ack[0]), fp.encode(report), fp.encode(ack[1]), fp.encode(report)])
+        # all routine: no wake-up until the line went quiet (the end of the chunks), then one for all
+        assert [(name, seen) for name, _, seen in calls] == [("_drain", [ack[0], report, ack[1], report])]
+        times = [t for _, t, _ in ch._inbox]
+        assert times == sorted(times) and len(set(times)) == 4  # each batch keeps its receive time
+        calls = run([fp.encode(ack[0]), fp.encode(report), b"", fp.encode(ack[1])])
+        assert [(name, seen) for name, _, seen in calls] == [("_drain", [ack[0], report])]  # the quiet line let them go
+        calls = run([fp.encode(report), fp.encode(status), fp.encode(nack), fp.encode(ack[2])])
+        assert [(name, seen) for name, _, seen in calls] == [("_drain", [report, status, nack])]  # a NACK at once
+        calls = run([fp.encode(report), None, fp.encode(report)])
+        assert [(name, seen) for name, _, seen in calls] == [("_drain", [report, report])]  # waited MAX_HOLD
+        ch._stop_ack = (0, None)  # while close() waits for the STOP's ACK, ACKs are not held
+        assert [name for name, _, _ in run([fp.encode(ack[0])])] == ["_drain"]
+        ch._stop_ack = None
+        many = [fp.encode(fp.Ack(ref_id=2, ref_seq=k % 256, seq=k % 256)) for k in range(MAX_HELD_BATCHES + 2)]
+        calls = run(many)  # one wake-up: a drain on its way takes what comes meanwhile
+        assert [(name, len(seen)) for name, _, seen in calls] == [("_drain", MAX_HELD_BATCHES + 1)]
+    finally:
+        serial_chassis.time = saved
 
 
-def test_held_batches_are_handled_in_order_as_if_posted_one_by_one():
-    """``_on_batches`` is ``_on_messages`` per batch: the ACK counter and the lost-frame count
-    come out as they would have."""
-    seen = []
+def test_a_drain_handles_the_batches_in_order_as_if_posted_one_by_one_and_survives_a_bad_one():
+    """``_drain`` is ``_on_messages`` per batch, in order, each with its own generation and receive
+    time; a batch that raises is reported to the loop's exception handler and the rest go on (a
+    poll runs inside the control tick, which must not end with it)."""
+    seen, reported = [], []
     ch = SerialChassis(CFG, port="loop://")
-    ch._on_messages = lambda gen, t_rx, msgs: seen.append((gen, t_rx, msgs))
-    batches = [(1.0, ["a"]), (2.0, ["b", "c"])]
-    ch._on_batches(7, batches)
-    assert seen == [(7, 1.0, ["a"]), (7, 2.0, ["b", "c"])]
+
+    def on_messages(gen, t_rx, msgs):
+        if msgs == ["bad"]:
+            raise ValueError("bad batch")
+        seen.append((gen, t_rx, msgs))
+
+    class Loop:
+        def call_exception_handler(self, context):
+            reported.append(context["exception"])
+
+    ch._on_messages, ch._loop = on_messages, Loop()
+    ch._inbox.extend([(7, 1.0, ["a"]), (7, 2.0, ["bad"]), (8, 3.0, ["b", "c"])])
+    ch._drain_posted = True
+    ch.poll()  # not monitoring: the drain alone
+    assert seen == [(7, 1.0, ["a"]), (8, 3.0, ["b", "c"])] and not ch._inbox and not ch._drain_posted
+    assert [str(e) for e in reported] == ["bad batch"]
+
+
+def test_a_poll_looks_at_the_link_and_pushes_the_monitors_timer_back():
+    """While the link is monitored, ``poll`` is a look (it returns the loss at once) and moves the
+    fallback look a tick and a half away: a consumer polling every tick is never overtaken by it.
+    Polls closer than half a tick to the last look do not look again."""
+    ch = SerialChassis(CFG, port="loop://")
+    ch._write = lambda data: True
+
+    async def scenario():
+        loop = ch._loop = asyncio.get_running_loop()
+        s = ch._session
+        s.ready, s.lost_reason, s.last_report_rx = True, None, time.monotonic() + 3600.0
+        ch._last_tx = time.monotonic() + 3600.0
+        task = asyncio.ensure_future(ch._monitor())
+        await asyncio.sleep(0)
+        t0 = loop.time()
+        ch.poll()
+        (timer,) = [h for h in loop._scheduled if not h.cancelled() and getattr(h._callback, "__name__", "") == "_look"]
+        assert timer.when() >= t0 + 1.5 * ch._look_tick
+        s.lose("the board lost the session (reset?)")
+        ch.poll()  # half a tick after the last look at the earliest: this one does not look
+        assert not ch._lost.done() and not timer.cancelled()
+        ch._look_again = 0.0  # (as if half a tick had passed)
+        ch.poll()
+        assert ch._lost.done()  # this poll's look found it, not a timer
+        assert await asyncio.wait_for(task, 5.0) == "the board lost the session (reset?)"
+        return [h for h in loop._scheduled if not h.cancelled() and getattr(h._callback, "__name__", "") == "_look"]
+
+    assert arun(scenario()) == []
+
+
+def test_the_monitors_own_look_handles_the_held_batches_before_judging_the_link():
+    """A consumer that never polls: the timer's look empties the inbox first, so reports the
+    reader holds are not taken for silence."""
+    ch = SerialChassis(CFG, port="loop://")
+    ch._write = lambda data: True
+
+    async def scenario():
+        ch._loop = asyncio.get_running_loop()
+        s = ch._session
+        s.ready, s.lost_reason, s.last_report_rx = True, None, time.monotonic() - 10.0  # silent but for the inbox
+        ch._last_tx = time.monotonic() + 3600.0
+
+        def on_messages(gen, t_rx, msgs):
+            s.last_report_rx = time.monotonic() + 3600.0
+
+        ch._on_messages = on_messages
+        ch._inbox.append((ch._gen, time.monotonic(), ["report"]))
+        task = asyncio.ensure_future(ch._monitor())
+        await asyncio.sleep(0)
+        ch._look()  # what its timer calls
+        healthy = not ch._lost.done() and not ch._inbox
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return healthy
+
+    assert arun(scenario())
 
 
 def test_the_link_monitor_returns_the_loss_sends_heartbeats_and_stops_its_timer_when_cancelled():
@@ -588,6 +683,6 @@ def test_the_link_monitor_returns_the_loss_sends_heartbeats_and_stops_its_timer_
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
-        return [h for h in loop._scheduled if not h.cancelled() and getattr(h._callback, "__name__", "") == "look"]
+        return [h for h in loop._scheduled if not h.cancelled() and getattr(h._callback, "__name__", "") == "_look"]
 
     assert arun(scenario()) == []

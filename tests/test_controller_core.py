@@ -46,6 +46,13 @@ def _driving_core(vision=False):
     return core, t, out
 
 
+
+class _NoChassis:
+    """The app's tests of the loop's machinery need no board, only the poll every tick and set makes."""
+
+    def poll(self) -> None:
+        pass
+
 def test_path_command_moves_towards_the_waypoint_within_limits():
     core, t, out = _driving_core()
     assert out.wheels is not None
@@ -197,7 +204,7 @@ def _pipeline_app():
             self.sets.append(([f.camera for f in frames], concurrent.futures.Future()))
             return self.sets[-1][1]
 
-    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], _NoChassis())
     app._executor = Worker()
     app._loop = asyncio.get_running_loop()
     app._slots = {c.name: None for c in ROBOT.cameras}
@@ -374,7 +381,7 @@ def test_the_control_tick_keeps_absolute_deadlines_without_bursts_and_stops_with
             h.cb()
             return h.when
 
-    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], None)
+    app = RobotApp(ROBOT, load_plane_map("config/maps/paper_arena.yaml"), [], _NoChassis())
     period = 1.0 / ROBOT.control.rate
     ticks = []
     app._tick = ticks.append

@@ -9,7 +9,7 @@ import pytest
 
 from robot.base.geometry import integrate_twist
 from robot.config import ChassisConfig
-from robot.control.kinematics import MecanumKinematics, make_kinematics
+from robot.control.kinematics import MecanumKinematics, limit_floats, make_kinematics
 
 CFG = ChassisConfig()  # r = 0.03, lx = 0.075, ly = 0.085
 K = make_kinematics(CFG)
@@ -98,6 +98,36 @@ def test_limit_scales_all_wheels_and_keeps_the_direction():
     np.testing.assert_allclose(t1 / np.linalg.norm(t1), t0 / np.linalg.norm(t0), atol=1e-12)
     same, s = K.limit([1.0, -2.0, 3.0, 0.0], 20.0)
     assert s == 1.0 and list(same) == [1.0, -2.0, 3.0, 0.0]
+
+
+def _limit_numpy(wheels, max_speed):
+    """The array formula ``limit`` had before it went through ``limit_floats``: the reference."""
+    w = np.asarray(wheels, dtype=float)
+    peak = float(np.max(np.abs(w))) if w.size else 0.0
+    if peak <= max_speed or peak == 0.0:
+        return w.copy(), 1.0
+    scale = max_speed / peak
+    return w * scale, scale
+
+
+def test_limit_floats_and_limit_give_the_array_formula_bit_for_bit():
+    """One rule for the array API and the control tick: the same scale and speeds to the bit,
+    scaled or not, zero, and non-finite speeds (NaN wins the peak wherever it is, as in numpy)."""
+    rng = np.random.default_rng(7)
+    cases = [K.inverse(*rng.uniform(-1.5, 1.5, 3)) for _ in range(300)]
+    cases += [np.zeros(4), np.array([-0.0, 0.0, 0.0, -0.0]), np.array([20.0, -20.0, 0.0, 1.0]),
+              np.array([math.nan, 1.0, 50.0, 2.0]), np.array([1.0, 50.0, 2.0, math.nan]),
+              np.array([math.inf, 1.0, -3.0, 0.0]), np.array([1.0, -math.inf, 30.0, 0.0])]
+    for w in cases:
+        ref, ref_scale = _limit_numpy(w, 20.0)
+        floats, scale = limit_floats(w.tolist(), 20.0)
+        arr, arr_scale = K.limit(w, 20.0)
+        assert np.array_equal(np.array(floats), ref, equal_nan=True) and np.array_equal(arr, ref, equal_nan=True)
+        assert np.array_equal(np.signbit(np.array(floats)), np.signbit(ref))
+        assert (scale == ref_scale and arr_scale == ref_scale) or (math.isnan(ref_scale) and math.isnan(scale)
+                                                                   and math.isnan(arr_scale))
+    assert any(_limit_numpy(w, 20.0)[1] < 1.0 for w in cases[:300])  # the random cases did scale some
+    assert limit_floats([], 1.0) == ((), 1.0) and K.limit(np.zeros(0), 1.0)[0].shape == (0,)
 
 
 def test_bad_geometry_is_rejected():

@@ -176,6 +176,14 @@ class Chassis(abc.ABC):
     @abc.abstractmethod
     def stop(self) -> bool: ...
 
+    def poll(self) -> None:
+        """Hand over now, on the caller's loop, what the driver has received and holds back (a
+        driver may keep routine messages for the next poll rather than wake the loop for each):
+        call it wherever the newest odometry matters. ``SerialChassis`` hands over its reader's
+        inbox; ``LoopbackChassis`` takes what its board model sent; a backend that delivers as it
+        receives has nothing to do."""
+        return None
+
     @abc.abstractmethod
     def odometry_queue(self, maxsize: int = 256) -> OdometryQueue:
         """A new ``OdometryQueue`` fed every sample; when full its two oldest samples are merged."""

@@ -5,11 +5,13 @@ The protocol itself (frames, handshake checks, reports to odometry, session loss
 the I/O and the link supervision around it.
 
 Threads and the loop: one reader thread per open port blocks in ``serial.read`` and decodes (the
-codec is pure), then hands the messages with their host receive time to the asyncio loop with
-``call_soon_threadsafe`` (a batch of nothing but ACKs waits for the next batch: ``_read_loop``).
-Everything else runs on the loop: the state machine, odometry, and the writes, which are
-non-blocking (a frame the OS will not take is dropped and counted, never queued: a late speed
-command is worse than none).
+codec is pure), then puts the messages with their host receive time in an inbox that the asyncio
+loop empties. Routine batches (encoder reports, ACKs, STATUS) wait there for the consumer's
+``poll`` (the controller polls at the start of every control tick) or at most ``MAX_HOLD``;
+anything else wakes the loop at once with ``call_soon_threadsafe`` (``_read_loop``). Everything
+else runs on the loop: the state machine, odometry, and the writes, which are non-blocking (a
+frame the OS will not take is dropped and counted, never queued: a late speed command is worse
+than none).
 
 Safety rules this class keeps (tests/test_chassis_driver.py and the chassis contract suite prove
 them against the emulator):
@@ -25,13 +27,14 @@ them against the emulator):
 from __future__ import annotations
 
 import asyncio
+import collections
 import logging
 import math
 import os
 import random
 import threading
 import time
-from typing import Callable, Dict, List, Optional, Sequence, Tuple
+from typing import Callable, Deque, Dict, List, Optional, Sequence, Tuple
 
 import serial
 
@@ -46,6 +49,7 @@ from firmware_protocol import (
     Message,
     NackReason,
     SetWheelSpeeds,
+    Status,
     Stop,
 )
 from robot.base.errors import DriverError
@@ -59,8 +63,15 @@ HELLO_RESEND = 0.25
 BACKOFF_START = 0.05  # s, first reconnect delay; doubles up to config.reconnect_backoff_max
 READ_TIMEOUT = 0.05  # s a blocked read waits, bounding how long closing the port takes
 _REPORT_WIRE_BYTES = 3 + EncoderReport.LAYOUT.size + 4 + 3  # header + payload + CRC + COBS byte + 2 delimiters
-# Batches of nothing but ACKs the reader may hold for the next batch that matters (see _read_loop).
-MAX_HELD_ACK_BATCHES = 8
+# Routine batches (nothing but encoder reports, ACKs and STATUS) the reader leaves in the inbox without
+# waking the loop, and for how long at most (see _read_loop): a little over one control period at
+# 50 Hz, so a consumer that polls every tick takes them all, and one that never polls gets them late
+# by this much.
+MAX_HELD_BATCHES = 8
+MAX_HOLD = 0.03  # s
+# What may wait for the poll: the reports, the ACKs of speed commands and the 10 Hz STATUS (a lost
+# session it reports is acted on by the link monitor's look, which every poll makes after draining).
+_ROUTINE = frozenset((Ack, EncoderReport, Status))
 
 
 def reconnect_delay(attempt: int, cap: float) -> float:
@@ -100,6 +111,14 @@ class SerialChassis(Chassis):
         self._supervisor: Optional[asyncio.Task] = None
         self._closing = False
         self._stop_ack: Optional[Tuple[int, asyncio.Future]] = None
+        # (generation, receive time, messages) from the reader thread, in order; emptied on the loop.
+        self._inbox: Deque[Tuple[int, float, List[Message]]] = collections.deque()
+        self._drain_posted = False  # a _drain is on its way to the loop
+        # The link monitor while the link is up: its verdict, its look period and fallback timer.
+        self._lost: Optional[asyncio.Future] = None
+        self._look_tick = 0.02
+        self._look_timer: Optional[asyncio.TimerHandle] = None
+        self._look_again = 0.0  # monotonic time before which a poll does not look again
 
     # Public interface  ------------------------------------------------------------------------
 
@@ -170,6 +189,8 @@ class SerialChassis(Chassis):
         except ValueError:
             self.stop()
             raise
+        if self._inbox:  # the reports the reader holds decide whether the link is still alive
+            self._drain()
         if self._state is not LinkState.READY or not self._session.usable(time.monotonic()):
             self._counters["commands_refused"] += 1
             return False
@@ -187,6 +208,17 @@ class SerialChassis(Chassis):
         if self._ser is None:
             return False
         return self._write(self._session.frame(Stop()))
+
+    def poll(self) -> None:
+        """Handle now what the reader thread received (odometry to the queues and callbacks), and
+        look at the link. Call it on the loop wherever fresh odometry matters (the controller does at
+        the start of every control tick): between polls, routine messages wait up to ``MAX_HOLD``
+        instead of waking the loop for every report."""
+        if self._inbox:
+            self._drain()
+        if self._lost is not None and time.monotonic() >= self._look_again:
+            # A tick and a half: a consumer polling at the look period keeps ahead of the fallback.
+            self._look(1.5 * self._look_tick)
 
     def odometry_queue(self, maxsize: int = 256) -> OdometryQueue:
         """A new queue fed every WheelOdometry; when full its two oldest samples are merged, never dropped."""
@@ -252,38 +284,50 @@ class SerialChassis(Chassis):
     async def _monitor(self) -> str:
         """Wait while the link is healthy, sending heartbeats; return why it is not any more.
 
-        The look every ``tick`` is a timer callback, not a task that sleeps: a sleeping task
-        costs a future and a second loop iteration per wake-up, fifty times a second."""
-        tick = max(0.005, min(0.02, self.config.link_timeout / 4.0))
-        session = self._session
-        loop = self._loop
-        lost: asyncio.Future = loop.create_future()
-        timer: List[asyncio.TimerHandle] = []
-
-        def look() -> None:
-            if lost.done():
-                return
-            try:
-                now = time.monotonic()
-                if session.lost_reason is not None:
-                    lost.set_result(session.lost_reason)
-                    return
-                silent = session.silence(now)
-                if silent is not None:
-                    lost.set_result(silent)
-                    return
-                if now - self._last_tx > HEARTBEAT_PERIOD:
-                    self._write(session.frame(Heartbeat()))
-            except Exception as e:  # raised out of _monitor, as from the task that slept here
-                lost.set_exception(e)
-                return
-            timer[0] = loop.call_later(tick, look)
-
-        timer.append(loop.call_later(tick, look))
+        It looks every ``tick`` from a timer callback (a task that slept cost a future and a second
+        loop iteration per wake-up) and at every ``poll``, which pushes the timer back: a consumer
+        that polls every control tick carries the looks, and the timer never wakes the loop."""
+        self._look_tick = max(0.005, min(0.02, self.config.link_timeout / 4.0))
+        lost: asyncio.Future = self._loop.create_future()
+        self._lost = lost
+        self._look_timer = self._loop.call_later(self._look_tick, self._look)
         try:
             return await lost
         finally:
-            timer[0].cancel()
+            self._lost = None
+            if self._look_timer is not None:
+                self._look_timer.cancel()
+                self._look_timer = None
+
+    def _look(self, next_in: Optional[float] = None) -> None:
+        """One look of the monitor: the session lost, reports stopped, a heartbeat due. The next
+        look is ``next_in`` seconds from now (a tick when None)."""
+        lost = self._lost
+        if lost is None or lost.done():
+            return
+        if self._look_timer is not None:
+            self._look_timer.cancel()
+            self._look_timer = None
+        if self._inbox:  # (from the timer: a consumer that does not poll) the reports held decide
+            self._drain()
+        session = self._session
+        try:
+            now = time.monotonic()
+            # Polls come from every control tick and frame set: half a tick apart is often enough.
+            self._look_again = now + 0.5 * self._look_tick
+            if session.lost_reason is not None:
+                lost.set_result(session.lost_reason)
+                return
+            silent = session.silence(now)
+            if silent is not None:
+                lost.set_result(silent)
+                return
+            if now - self._last_tx > HEARTBEAT_PERIOD:
+                self._write(session.frame(Heartbeat()))
+        except Exception as e:  # raised out of _monitor, as from the task that slept here
+            lost.set_exception(e)
+            return
+        self._look_timer = self._loop.call_later(self._look_tick if next_in is None else next_in, self._look)
 
     async def _open_and_handshake(self) -> None:
         self._state = LinkState.CONNECTING
@@ -394,16 +438,20 @@ class SerialChassis(Chassis):
         return True
 
     def _read_loop(self, ser, gen: int, stop: threading.Event) -> None:
-        """Reader thread: block in read, decode, hand messages to the loop. Owns the decoder.
+        """Reader thread: block in read, decode, put the messages in the inbox. Owns the decoder.
 
-        The board ACKs every speed command (50 a second) in a frame of its own. A batch of nothing
-        but ACKs asks nothing of the loop (counters; the STOP of ``close`` is awaited, and its ACK
-        goes at once), so it waits, with its own receive time, for the next batch that does (the
-        next encoder report, within 10 ms) or for a read that times out; the loop then handles
-        the batches in order. Waking the loop for each ACK cost as much as for a report."""
+        Waking the loop costs it about as much as handling an encoder report (its self-pipe, a
+        select, a callback), and routine messages come 160 times a second: the board's encoder
+        reports (100 Hz), the ACK of every speed command (50 Hz) and its STATUS (10 Hz). A batch of
+        nothing but those therefore stays in the inbox for the consumer's next ``poll`` (at the
+        start of every control tick, which needs the reports), for at most ``MAX_HOLD`` and
+        ``MAX_HELD_BATCHES`` batches, or until a read times out (a quiet line). Anything else (a
+        NACK, the handshake's reply, the ACK of the STOP that ``close`` waits for) wakes the loop
+        at once, which empties the inbox in order, each batch with its own receive time."""
         loop = self._loop
         session = self._session
-        held: List[Tuple[float, List[Message]]] = []
+        inbox = self._inbox
+        since = 0.0  # receive time of the oldest batch put in the inbox since it was last empty
         while not stop.is_set():
             try:
                 data = ser.read(1)
@@ -413,32 +461,33 @@ class SerialChassis(Chassis):
                         data += ser.read(waiting)
             except Exception as e:  # pyserial raises several types when a device vanishes
                 if not stop.is_set():
-                    if held:
-                        self._post(loop, self._on_batches, gen, held)
+                    if inbox:
+                        self._post_drain(loop)
                     self._post(loop, self._on_port_error, gen, f"port error: {e}")
                 return
             if not data:
-                if held:  # the line went quiet: what was held goes now
-                    if not self._post(loop, self._on_batches, gen, held):
-                        return
-                    held = []
+                if inbox and not self._post_drain(loop):  # the line went quiet: what waits goes now
+                    return
                 continue
             t_rx = time.monotonic()
             msgs = session.decode(data)
             if not msgs:
                 continue
-            if (len(held) < MAX_HELD_ACK_BATCHES and self._stop_ack is None
-                    and all(type(m) is Ack for m in msgs)):
-                held.append((t_rx, msgs))
+            if not inbox:
+                since = t_rx
+            inbox.append((gen, t_rx, msgs))
+            if (t_rx - since < MAX_HOLD and len(inbox) <= MAX_HELD_BATCHES and self._stop_ack is None
+                    and all(type(m) in _ROUTINE for m in msgs)):
                 continue
-            if held:
-                held.append((t_rx, msgs))
-                posted = self._post(loop, self._on_batches, gen, held)
-                held = []
-            else:
-                posted = self._post(loop, self._on_messages, gen, t_rx, msgs)
-            if not posted:
+            if not self._post_drain(loop):
                 return
+
+    def _post_drain(self, loop) -> bool:
+        """Wake the loop to empty the inbox (once: a drain on its way takes what comes meanwhile)."""
+        if self._drain_posted:
+            return True
+        self._drain_posted = True
+        return self._post(loop, self._drain)
 
     @staticmethod
     def _post(loop, fn, *args) -> bool:
@@ -454,10 +503,19 @@ class SerialChassis(Chassis):
         if gen == self._gen:
             self._session.lose(reason)
 
-    def _on_batches(self, gen: int, batches: List[Tuple[float, List[Message]]]) -> None:
-        """Several received batches in one loop callback, each as ``_on_messages`` takes it."""
-        for t_rx, msgs in batches:
-            self._on_messages(gen, t_rx, msgs)
+    def _drain(self) -> None:
+        """Handle every batch in the inbox, in order, each as its own loop callback was handled:
+        an exception is reported to the loop's handler and the next batch goes on (a poll inside
+        the control tick must not end the tick)."""
+        self._drain_posted = False  # first: a batch put after this posts a drain of its own
+        inbox = self._inbox
+        while inbox:
+            gen, t_rx, msgs = inbox.popleft()
+            try:
+                self._on_messages(gen, t_rx, msgs)
+            except Exception as e:  # noqa: PERF203 - one bad batch must not hold back the others
+                self._loop.call_exception_handler({"message": f"{self.port}: handling a received batch failed",
+                                                   "exception": e})
 
     def _on_messages(self, gen: int, t_rx: float, msgs: List[Message]) -> None:
         if gen != self._gen:

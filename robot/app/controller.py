@@ -127,7 +127,8 @@ class RobotApp:
         self.core = ControllerCore(robot, vision=self.options.vision, t_start=time.monotonic(), plane_map=plane_map,
                                    calibration=self._online_calibration())
         self.localizer = Localizer(robot, plane_map) if self.options.vision else None
-        self.odom = OdomFrame(self.core.kinematics.forward)  # odom -> base_link: the wheels alone (REP-105)
+        # odom -> base_link: the wheels alone (REP-105); forward in floats, as the filter's feed takes it
+        self.odom = OdomFrame(self.core.kinematics.forward_floats)
         self.stats = AppStats()
         # Live frames are judged like snapshot files, and by their time stamp: a bad one is counted, never fused.
         self.frame_check = FrameCheck(robot.health.frame_max_ahead, robot.health.frame_max_age)
@@ -192,6 +193,7 @@ class RobotApp:
     def set_pose(self, pose: Sequence[float], cov: np.ndarray, source: str, hidden_walls: Sequence[Dict] = ()) -> None:
         """Reset the fused pose now (operator, fleet); recorded, so that replay resets it too.
         ``hidden_walls``: what a relocalization could not exclude (ControllerCore.set_pose)."""
+        self.chassis.poll()  # the odometry received before the reset goes in before it, as it came
         t = time.monotonic()
         self.core.set_pose(t, *pose, cov, hidden_walls=hidden_walls)
         self.core.recovery.pose_set_by_operator(t)  # the next views must confirm it
@@ -348,6 +350,7 @@ class RobotApp:
             except Exception as e:  # noqa: PERF203 - shutdown must go on
                 log.error("stopping %s: %s", type(service).__name__, e)
         self._stop_control()  # with the tasks: no tick and none of the core's inputs after this
+        self.chassis.poll()  # what the driver holds is fused before the pose is saved
         self._stop_odometry()
         self._stop_localization()
         for task in tasks:
@@ -506,7 +509,8 @@ class RobotApp:
         if not frames:
             return
         # The protective stop sees every frame, with the pose if there is one; the localizer
-        # only once there is a pose to refine.
+        # only once there is a pose to refine. Each coarse pose with the odometry received so far.
+        self.chassis.poll()
         localize = self.core.initialized and self.localizer is not None
         coarse = [self.core.coarse_pose(f.t_capture) if self.core.initialized else None for f in frames]
         for frame in frames:
@@ -529,6 +533,7 @@ class RobotApp:
         self._set_in_worker = False
         if not self._sets_running:
             return  # stopped meanwhile: nothing more is fused
+        self.chassis.poll()  # the odometry received so far goes in first, as it came before
         try:
             if localize:
                 self._fuse_set(frames, coarse, work.result())
@@ -601,6 +606,7 @@ class RobotApp:
         views: List[Tuple[List[DepthFrame], Tuple[float, float, float]]] = []
         while True:
             await asyncio.sleep(RECOVERY_POLL)
+            self.chassis.poll()  # whether the robot stands still, by the odometry received so far
             t_request = time.monotonic()
             if not self.core.relocalization_due(t_request):
                 continue
@@ -623,6 +629,7 @@ class RobotApp:
                 self.core.recovery.on_verdict(time.monotonic(), "none", [], str(e), may_turn=False)
                 continue
             t_frames = max(f.t_capture for f in frames)
+            self.chassis.poll()  # (the odometry received before the reset goes in before it)
             if res.verdict == "unique":
                 h = res.hypotheses[0]
                 self.core.set_pose(t_frames, h.x, h.y, h.phi, np.asarray(h.cov, float), hidden_walls=h.hidden_walls)
@@ -676,6 +683,9 @@ class RobotApp:
         if time.monotonic() < self._stall_control_until:
             time.sleep(self._control_period)  # simulate a hung loop: block the event loop itself
         else:
+            # The chassis driver holds its routine reports for this poll rather than wake the loop
+            # for each: every report received before the tick's time is fused before its step.
+            self.chassis.poll()
             self._tick(time.monotonic())
         self._schedule_tick()
 
@@ -723,6 +733,7 @@ class RobotApp:
     async def _status_task(self) -> None:
         while True:
             await asyncio.sleep(self.options.status_period)
+            self.chassis.poll()
             t = time.monotonic()
             line = self.status_line()
             sd_notify.status(line)
@@ -755,6 +766,7 @@ class RobotApp:
     # -- reporting ------------------------------------------------------------------------------
 
     def status(self, t: Optional[float] = None) -> Dict[str, object]:
+        self.chassis.poll()  # the pose with the odometry received so far
         t = time.monotonic() if t is None else t
         s = self.core.status(t)
         s["cameras"] = dict(self.camera_states)

@@ -30,7 +30,7 @@ from robot.base.geometry import integrate_twist
 from robot.base.samples import WheelOdometry
 from robot.config import RobotConfig
 from robot.control.health import HealthSupervisor
-from robot.control.kinematics import MecanumKinematics
+from robot.control.kinematics import MecanumKinematics, limit_floats
 from robot.control.odometry import OdometryFeed
 from robot.control.path_file import PathPlan
 from robot.control.protective_stop import CLEAR, DISABLED, ProtectiveStop, SafetyDecision
@@ -522,18 +522,13 @@ class ControllerCore:
         return ControlOutput(t, cmd, wheels, scale, reason)
 
     def _wheels(self, vx: float, vy: float, wz: float) -> Optional[Tuple[float, float, float, float]]:
-        """The wheel speeds of a twist scaled into the limit as ``MecanumKinematics.limit`` does
-        (the same products, in floats after its inverse), or None when they are not finite."""
-        w0, w1, w2, w3 = self.kinematics.inverse(vx, vy, wz).tolist()
+        """The wheel speeds of a twist scaled into the limit (``limit_floats``, what
+        ``MecanumKinematics.limit`` computes), or None when they are not finite."""
+        w = self.kinematics.inverse(vx, vy, wz).tolist()
         isfinite = math.isfinite
-        if not (isfinite(w0) and isfinite(w1) and isfinite(w2) and isfinite(w3)):
+        if not (isfinite(w[0]) and isfinite(w[1]) and isfinite(w[2]) and isfinite(w[3])):
             return None
-        peak = max(abs(w0), abs(w1), abs(w2), abs(w3))
-        max_speed = self.robot.chassis.max_wheel_speed
-        if peak <= max_speed or peak == 0.0:
-            return w0, w1, w2, w3
-        k = max_speed / peak
-        return w0 * k, w1 * k, w2 * k, w3 * k
+        return limit_floats(w, self.robot.chassis.max_wheel_speed)[0]  # type: ignore[return-value]
 
     def _turn_blocker(self, t: float) -> str:
         """Why the in-place turn may not go on now ("" when it may)."""
