@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import namedtuple
 from dataclasses import replace
@@ -175,7 +176,16 @@ def test_a_scan_from_the_raw_depth_units_is_the_scan_from_metres():
 # -- the per-frame scan, held to its plain implementation --------------------------------------
 # The scan as it was written first (robot/control/protective_stop.py at commit 88c1e98),
 # kept here as the reference the faster one must match exactly: the same obstacle points in the
-# same order, the same wall counts, blindness and memory, so the same decisions.
+# same order, the same wall counts, blindness and memory, so the same decisions. Its matrix
+# products are written out as the scan computes them (each sum left to right, no fused
+# multiply-add), since a product's own order is the BLAS's of the machine; ``_BlasStop`` keeps
+# numpy's products, and the scan matches it to rounding with the same decisions.
+
+
+def _plain_product(p, M):
+    """``p @ M.T``, each sum left to right."""
+    return np.stack([functools.reduce(np.add, [p[:, i] * M[j, i] for i in range(p.shape[1])])
+                     for j in range(M.shape[0])], axis=1)
 
 _PlainWall = namedtuple("_PlainWall", "n d R_plane polygons_2d lo hi")
 
@@ -215,7 +225,8 @@ def _plain_metres(depth, depth_scale):
     return depth.astype(np.float32) * np.float32(depth_scale)
 
 
-def _plain_depth_points_robot(depth_m, K, T_robot_camera, stride, min_range, max_range, depth_scale=1.0):
+def _plain_depth_points_robot(depth_m, K, T_robot_camera, stride, min_range, max_range, depth_scale=1.0,
+                              product=_plain_product):
     z = _plain_metres(depth_m[::stride, ::stride], depth_scale)
     h, w = z.shape
     v, u = np.mgrid[0:h, 0:w]
@@ -226,11 +237,13 @@ def _plain_depth_points_robot(depth_m, K, T_robot_camera, stride, min_range, max
     x_c = (u[ok] - K[0, 2]) / K[0, 0] * z
     y_c = (v[ok] - K[1, 2]) / K[1, 1] * z
     p_camera = np.stack([x_c, y_c, z], axis=1)
-    return p_camera @ T_robot_camera[:3, :3].T + T_robot_camera[:3, 3]
+    return product(p_camera, T_robot_camera[:3, :3]) + T_robot_camera[:3, 3]
 
 
 class _PlainStop(ProtectiveStop):
     """The protective stop with the plain per-frame scan; the per-tick ``limit`` is the same code."""
+
+    product = staticmethod(_plain_product)
 
     def __post_init__(self):
         super().__post_init__()
@@ -241,7 +254,7 @@ class _PlainStop(ProtectiveStop):
         cam = self.robot.camera(camera)
         stride = max(1, int(round(c.stride * depth_m.shape[1] / float(cam.width))))
         p_robot = _plain_depth_points_robot(depth_m, K, cam.T_robot_camera, stride, self.robot.localizer.min_range,
-                                            c.max_range, depth_scale)
+                                            c.max_range, depth_scale, self.product)
         band = (p_robot[:, 2] >= c.min_height) & (p_robot[:, 2] <= c.max_height)
         p_robot = p_robot[band]
         ignored = 0
@@ -275,7 +288,7 @@ class _PlainStop(ProtectiveStop):
             R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
             z_test = float(np.clip(o[2], c.min_height, c.max_height))
             p_ground = np.column_stack([mem, np.full(len(mem), z_test)])
-            p_cam = (p_ground - o) @ R
+            p_cam = self.product(p_ground - o, R.T)
             z = p_cam[:, 2]
             h, w = depth_m.shape
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -290,7 +303,7 @@ class _PlainStop(ProtectiveStop):
             mem, mem_t = mem[~seen_through], mem_t[~seen_through]
         if len(scan.points_xy):
             T = pose_to_T_ground_robot(*pose)
-            new = scan.points_xy @ T[:2, :2].T + T[:2, 3]
+            new = self.product(scan.points_xy, T[:2, :2]) + T[:2, 3]
             mem = np.vstack([mem, new])
             mem_t = np.concatenate([mem_t, np.full(len(new), scan.t)])
         if len(mem):
@@ -301,7 +314,7 @@ class _PlainStop(ProtectiveStop):
 
     def _plain_explained_by_walls(self, p_robot, pose):
         T = pose_to_T_ground_robot(*pose)
-        p_ground = p_robot @ T[:3, :3].T + T[:3, 3]
+        p_ground = self.product(p_robot, T[:3, :3]) + T[:3, 3]
         tol = self.config.wall_tolerance
         explained = np.zeros(len(p_ground), dtype=bool)
         reach = self.config.max_range + tol
@@ -309,14 +322,14 @@ class _PlainStop(ProtectiveStop):
         for w in self._plain_walls:
             if np.any(xy < w.lo - reach) or np.any(xy > w.hi + reach):
                 continue
-            dist = p_ground @ w.n + w.d
+            dist = self.product(p_ground, w.n[None, :])[:, 0] + w.d
             close = np.abs(dist) < tol
             if not close.any():
                 continue
             idx = np.nonzero(close & ~explained)[0]
             if len(idx) == 0:
                 continue
-            q = p_ground[idx] @ w.R_plane.T
+            q = self.product(p_ground[idx], w.R_plane)
             inside = np.zeros(len(idx), dtype=bool)
             for poly in w.polygons_2d:
                 inside |= _plain_inside_polygon(q, poly)

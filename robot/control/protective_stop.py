@@ -185,9 +185,22 @@ def depth_points_robot(depth_m: np.ndarray, K: np.ndarray, T_robot_camera: np.nd
     may be the camera's raw units with ``depth_scale`` metres each: only the sampled pixels are
     converted (as ``DepthFrame.depth_m`` would, in float32)."""
     z = _metres(depth_m[::stride, ::stride], depth_scale)
-    p_robot = _camera_points(z, _pixel_rays(z.shape, K, stride), min_range, max_range) @ T_robot_camera[:3, :3].T
+    p_robot = _rotated(_camera_points(z, _pixel_rays(z.shape, K, stride), min_range, max_range), T_robot_camera[:3, :3])
     _add_columns(p_robot, T_robot_camera[:3, 3])
     return p_robot
+
+
+def _rotated(p: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``p @ R.T`` for (N, k) ``p``, each sum written out left to right, ``(p_0 R_j0 + p_1 R_j1) + ...``:
+    the order the compiled kernels compute in, on every platform. A matrix product's order is its
+    BLAS's (fused multiply-adds on one CPU, pairs summed on another), which no kernel can repeat."""
+    out = np.empty((len(p), R.shape[0]))
+    for j in range(R.shape[0]):
+        col = out[:, j]
+        np.multiply(p[:, 0], R[j, 0], out=col)
+        for i in range(1, p.shape[1]):
+            col += p[:, i] * R[j, i]
+    return out
 
 
 def _pixel_rays(shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.ndarray, np.ndarray]:
@@ -342,6 +355,18 @@ class ProtectiveStop:
         margin = np.array([c.wall_tolerance + w.off_plane + 1e-6 + _ROUNDING * float(np.abs(np.r_[w.lo, w.hi]).max())
                            for w in self._walls]).reshape(-1, 1)
         self._wall_bounds = np.hstack([lo - reach, -(hi + reach), lo - margin, -(hi + margin)])
+        # The walls for the compiled scan: planes (n, d, in-plane axes), the pre-filter, polygons.
+        flats = [w.flat for w in self._walls]
+        self._wall_table: scan_kernels.WallTable = (
+            np.array([np.r_[w.n, w.d, w.R_plane.ravel()] for w in self._walls]).reshape(-1, 10),
+            np.ascontiguousarray(self._wall_bounds),
+            np.cumsum([0] + [len(f[1]) - 1 for f in flats]).astype(np.int64),
+            np.ascontiguousarray(np.vstack([f[0] for f in flats]) if flats else np.zeros((0, 2))),
+            np.cumsum([0] + [n for f in flats for n in np.diff(f[1]).tolist()]).astype(np.int64),
+            np.ascontiguousarray(np.vstack([f[2] for f in flats]) if flats else np.zeros((0, 4))))
+        # The cameras' mounts as the kernels take them (float64, C order, writable like every frame's).
+        self._T_robot_camera = {cam.name: np.array(cam.T_robot_camera, dtype=np.float64, order="C")
+                                for cam in self.robot.cameras}
         # (shape, stride, K) -> the sampled pixels' rays: built once per camera stream.
         self._rays: Dict[tuple, Tuple[np.ndarray, np.ndarray]] = {}
         # (memory points, their times, their cell keys): the keys of the memory this object wrote
@@ -371,26 +396,27 @@ class ProtectiveStop:
         shape = (-(-depth_m.shape[0] // stride), -(-depth_m.shape[1] // stride))  # of depth_m[::stride, ::stride]
         rays = self._pixel_rays(shape, K, stride)
         min_range = self.robot.localizer.min_range
-        p_camera = None
-        if compiled:
-            p_camera = scan_kernels.camera_points(depth_m, stride, shape, depth_scale, min_range, c.max_range, rays)
-        if p_camera is None:
-            p_camera = _camera_points(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
-        p_robot = p_camera @ cam.T_robot_camera[:3, :3].T
-        band = scan_kernels.in_band if compiled else _in_band
-        p_robot = band(p_robot, cam.T_robot_camera[:3, 3], c.min_height, c.max_height)
-        points_xy, ignored = None, 0
         T_ground_robot = pose_to_T_ground_robot(*pose) if pose is not None else None
-        if T_ground_robot is not None and self._walls and len(p_robot):
-            explained = self._explained_by_walls(p_robot, pose, T_ground_robot, compiled)
-            kept = None
-            if compiled:
-                kept = scan_kernels.kept_points(p_robot, explained, c.footprint_offset_x, self._half_x, self._half_y,
-                                                c.always_distance)
-            points_xy, ignored = kept if kept is not None else self._kept_points(p_robot, explained)
-        if points_xy is None:
-            points_xy = np.ascontiguousarray(p_robot[:, :2])
-        near_blind = self._near_blind(depth_m)
+        with_walls = T_ground_robot is not None and self._walls
+        kept = sampled = None
+        if compiled:
+            # The frame's points and its view blindness in one kernel call, the walls in another.
+            sampled = scan_kernels.scan_frame(depth_m, stride, shape, depth_scale, min_range, c.max_range, rays,
+                                              self._T_robot_camera[camera], c.min_height, c.max_height,
+                                              c.near_blind_fraction)
+        if sampled is not None:
+            p_robot, near_blind = sampled
+            if with_walls and len(p_robot):
+                kept = scan_kernels.walls(p_robot, T_ground_robot, pose[:2], self._wall_table, c.wall_tolerance,
+                                          c.footprint_offset_x, self._half_x, self._half_y, c.always_distance)
+        else:
+            p_camera = _camera_points(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
+            p_robot = _in_band(_rotated(p_camera, cam.T_robot_camera[:3, :3]), cam.T_robot_camera[:3, 3], c.min_height,
+                               c.max_height)
+            near_blind = self._near_blind(depth_m)
+        if kept is None and with_walls and len(p_robot):
+            kept = self._kept_points(p_robot, self._explained_by_walls(p_robot, pose, T_ground_robot))
+        points_xy, ignored = kept if kept is not None else (np.ascontiguousarray(p_robot[:, :2]), 0)
         scan = ObstacleScan(camera, float(t), points_xy, ignored, near_blind)
         self.scans[camera] = scan
         if T_ground_robot is not None:
@@ -451,64 +477,61 @@ class ProtectiveStop:
                   T_ground_robot: np.ndarray, depth_scale: float = 1.0) -> None:
         """Forget what this frame sees through and what is too old; add this frame's points."""
         c = self.config
-        compiled = scan_kernels.backend() == "numba"
         mem, mem_t = self.memory
         known = self._memory_keys
         keys = known[2] if known is not None and known[0] is mem and known[1] is mem_t else None
-        keep = (scan.t - mem_t) <= c.memory_time
-        if not keep.all():
-            mem, mem_t, keys = _compact(mem, mem_t, keys, keep)
-        alive = None  # the remembered points this frame does not see through (None: all)
-        if len(mem):
-            cam = self.robot.camera(camera)
-            T_ground_camera = T_ground_robot @ cam.T_robot_camera
-            R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
-            # The remembered points are (x, y) only: test them at mid-height of the band the camera sees.
-            z_test = float(o[2]) if c.min_height < o[2] < c.max_height else float(np.clip(o[2], c.min_height,
-                                                                                           c.max_height))
-            p_ground_o = np.empty((len(mem), 3))  # the points less the camera position
-            np.subtract(mem, o[:2], out=p_ground_o[:, :2])
-            p_ground_o[:, 2] = z_test - o[2]
-            p_cam = p_ground_o @ R
-            seen = None
-            if compiled:
-                seen = scan_kernels.seen_through(p_cam, K, self.robot.localizer.min_range, depth_m, depth_scale,
-                                                 c.wall_tolerance)
-            if seen is None:
-                seen = self._seen_through(p_cam, K, depth_m, depth_scale)
-            if seen.any():
-                alive = ~seen
-        if len(scan.points_xy):
-            new = scan.points_xy @ T_ground_robot[:2, :2].T
-            _add_columns(new, T_ground_robot[:2, 3])
-            merged = None
-            if keys is not None and compiled:
-                merged = scan_kernels.merge_cells(keys, mem_t, np.ones(len(mem), dtype=bool) if alive is None else alive,
-                                                  new, scan.t, c.memory_cell)
-            if merged is not None:
-                stays, pick, new_keys = merged
-                mem, mem_t, keys = _compact(mem, mem_t, keys, stays)
-                mem = np.concatenate([mem, new.take(pick, axis=0)])
-                mem_t = np.concatenate([mem_t, np.full(len(pick), scan.t)])
-                keys = np.concatenate([keys, new_keys])
-            else:
-                if alive is not None:
-                    mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
-                if keys is not None:
-                    mem, mem_t, keys = self._add_to_cells(mem, mem_t, keys, new, scan.t)
-                else:
-                    mem, mem_t, keys = self._one_per_cell(np.vstack([mem, new]),
-                                                          np.concatenate([mem_t, np.full(len(new), scan.t)]))
-        else:
-            if alive is not None:
-                mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
-            if keys is None and len(mem):
-                mem, mem_t, keys = self._one_per_cell(mem, mem_t)
+        T_ground_camera = T_ground_robot @ self._T_robot_camera[camera]
+        o_z = float(T_ground_camera[2, 3])
+        # The remembered points are (x, y) only: test them at mid-height of the band the camera sees.
+        z_test = o_z if c.min_height < o_z < c.max_height else float(np.clip(o_z, c.min_height, c.max_height))
+        merged = None
+        if keys is not None and scan_kernels.backend() == "numba":
+            merged = scan_kernels.remember(mem, mem_t, keys, scan.t, c.memory_time, T_ground_camera, z_test, K,
+                                           self.robot.localizer.min_range, depth_m, depth_scale, c.wall_tolerance,
+                                           scan.points_xy, T_ground_robot, c.memory_cell)
+        if merged is None:
+            merged = self._remember_numpy(scan, mem, mem_t, keys, depth_m, K, T_ground_robot, T_ground_camera, z_test,
+                                          depth_scale)
+        mem, mem_t, keys = merged
         if len(mem) > c.memory_points:  # bounded: keep the newest
             mem, mem_t = mem[-c.memory_points:], mem_t[-c.memory_points:]
             keys = keys[-c.memory_points:] if keys is not None else None
         self.memory = (mem, mem_t)
         self._memory_keys = (mem, mem_t, keys) if keys is not None else None
+
+    def _remember_numpy(self, scan: ObstacleScan, mem: np.ndarray, mem_t: np.ndarray, keys: Optional[np.ndarray],
+                        depth_m: np.ndarray, K: np.ndarray, T_ground_robot: np.ndarray, T_ground_camera: np.ndarray,
+                        z_test: float, depth_scale: float) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+        """``_remember``'s memory (points, times, cell keys when known) before its bound on the points."""
+        c = self.config
+        keep = (scan.t - mem_t) <= c.memory_time
+        if not keep.all():
+            mem, mem_t, keys = _compact(mem, mem_t, keys, keep)
+        alive = None  # the remembered points this frame does not see through (None: all)
+        if len(mem):
+            R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
+            p_ground_o = np.empty((len(mem), 3))  # the points less the camera position
+            np.subtract(mem, o[:2], out=p_ground_o[:, :2])
+            p_ground_o[:, 2] = z_test - o[2]
+            seen = self._seen_through(_rotated(p_ground_o, R.T), K, depth_m, depth_scale)
+            if seen.any():
+                alive = ~seen
+        if len(scan.points_xy):
+            new = _rotated(scan.points_xy, T_ground_robot[:2, :2])
+            _add_columns(new, T_ground_robot[:2, 3])
+            if alive is not None:
+                mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
+            if keys is not None:
+                mem, mem_t, keys = self._add_to_cells(mem, mem_t, keys, new, scan.t)
+            else:
+                mem, mem_t, keys = self._one_per_cell(np.vstack([mem, new]),
+                                                      np.concatenate([mem_t, np.full(len(new), scan.t)]))
+        else:
+            if alive is not None:
+                mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
+            if keys is None and len(mem):
+                mem, mem_t, keys = self._one_per_cell(mem, mem_t)
+        return mem, mem_t, keys
 
     def _seen_through(self, p_cam: np.ndarray, K: np.ndarray, depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
         """Which points (camera frame) the frame shows something farther than at their pixel."""
@@ -586,15 +609,12 @@ class ProtectiveStop:
         return (np.concatenate([mem, new.take(pick, axis=0)]), np.concatenate([mem_t, np.full(len(pick), t)]),
                 np.concatenate([keys, (picked[:, 0] << 32) + (picked[:, 1] & 0xFFFFFFFF)]))
 
-    def _explained_by_walls(self, p_robot: np.ndarray, pose: Tuple[float, float, float], T_ground_robot: np.ndarray,
-                            compiled: bool = False) -> np.ndarray:
-        p_ground = p_robot @ T_ground_robot[:3, :3].T
-        if compiled:
-            x_lo, x_hi, y_lo, y_hi = scan_kernels.to_ground(p_ground, T_ground_robot[:3, 3])
-        else:
-            _add_columns(p_ground, T_ground_robot[:3, 3])
-            gx, gy = p_ground[:, 0], p_ground[:, 1]
-            x_lo, x_hi, y_lo, y_hi = gx.min(), gx.max(), gy.min(), gy.max()
+    def _explained_by_walls(self, p_robot: np.ndarray, pose: Tuple[float, float, float], T_ground_robot: np.ndarray
+                            ) -> np.ndarray:
+        p_ground = _rotated(p_robot, T_ground_robot[:3, :3])
+        _add_columns(p_ground, T_ground_robot[:3, 3])
+        gx, gy = p_ground[:, 0], p_ground[:, 1]
+        x_lo, x_hi, y_lo, y_hi = gx.min(), gx.max(), gy.min(), gy.max()
         tol = self.config.wall_tolerance
         explained = np.zeros(len(p_ground), dtype=bool)
         xy = np.asarray(pose[:2])
@@ -604,12 +624,7 @@ class ProtectiveStop:
         some = False
         for k in (~(v < self._wall_bounds).any(axis=1)).nonzero()[0].tolist():
             w = self._walls[k]
-            dist = p_ground @ w.n
-            if compiled:
-                idx, rows = scan_kernels.close_points(dist, w.d, tol, explained, p_ground)
-                if len(idx):
-                    scan_kernels.mark_inside(rows @ w.R_plane.T, w.flat, idx, explained)
-                continue
+            dist = _rotated(p_ground, w.n[None, :])[:, 0]
             dist += w.d
             close = np.abs(dist) < tol
             if some:
@@ -617,7 +632,7 @@ class ProtectiveStop:
             idx = close.nonzero()[0]
             if len(idx) == 0:
                 continue
-            q = p_ground.take(idx, axis=0) @ w.R_plane.T
+            q = _rotated(p_ground.take(idx, axis=0), w.R_plane)
             inside = _inside_polygons(q, w)
             if inside.any():
                 explained[idx[inside]] = True

@@ -50,7 +50,7 @@ _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher, once they compiled
 _failed = ""  # why the kernels did not compile ("": they did, or were not tried)
 _lock = threading.Lock()  # one compilation, whichever thread scans first
 _KERNELS = ("_sample_kernel", "_band_kernel", "_ground_kernel", "_close_kernel", "_inside_kernel", "_kept_kernel",
-            "_seen_through_kernel", "_merge_kernel")
+            "_seen_through_kernel", "_merge_kernel", "_frame_kernel", "_walls_kernel", "_remember_kernel")
 
 
 def backend() -> str:
@@ -103,6 +103,7 @@ def jit_kernels() -> Dict[str, Any]:
     for an argument type it was not built for)."""
     import numba
 
+    numba.extending.register_jitable(_merge_kernel)  # called from _remember_kernel too
     return jit_table(numba, globals(), _KERNELS, error_model="numpy")
 
 
@@ -113,13 +114,21 @@ def _run_each_kernel() -> None:
     for r in rays:
         r.flags.writeable = False
     K = np.array([[2.0, 0.0, 1.5], [0.0, 2.0, 1.5], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
     p = np.array([[0.0, 0.0, 1.0], [0.1, -0.1, 2.0]])
     for depth, scale in ((np.full((4, 4), 1000, np.uint16), 0.001), (np.full((4, 4), 1.0, np.float32), 1.0)):
         for writeable in (True, False):  # a replayed frame may be a read-only view of its message
             depth.flags.writeable = writeable
             camera_points(depth, 2, (2, 2), scale, 0.2, 3.0, rays)
             seen_through(p, K, 0.2, depth, scale, 0.04)
+            scan_frame(depth, 2, (2, 2), scale, 0.2, 3.0, rays, T, 0.04, 1.8, 0.6)
+            remember(p[:, :2].copy(), np.zeros(2), np.zeros(2, np.int64), 1.0, 3.0, T, 0.5, K, 0.2, depth, scale,
+                     0.04, p[:, :2].copy(), T, 0.02)
     explained = np.zeros(2, np.bool_)
+    table = (np.zeros((1, 10)), np.zeros((1, 8)), np.array([0, 1], np.int64),
+             np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), np.array([0, 4], np.int64),
+             np.array([[0.0, 1.0, 0.0, 1.0]]))
+    walls(p, T, (0.0, 0.0), table, 0.04, 0.0, 0.11, 0.11, 0.06)
     in_band(p, K[0], 0.04, 1.8)
     to_ground(p.copy(), K[0])
     idx, rows = close_points(p[:, 0].copy(), 0.5, 0.04, explained, p)
@@ -154,6 +163,141 @@ def _sample_kernel(depth, stride, h, w, convert, scale, lo, hi, rays_x, rays_y):
                 out[n, 2] = z64
                 n += 1
     return out[:n]
+
+
+def _frame_kernel(depth, stride, h, w, convert, scale, lo, hi, rays_x, rays_y, T, z_lo, z_hi, r0, r1, c0, c1, limit):
+    """The sampled pixels' points in the height band, in the robot frame: ``_camera_points``,
+    ``_rotated`` by ``T``'s rotation and ``_in_band`` in one pass, no array between them. And
+    ``_near_blind``: whether more than ``limit`` depths of ``depth[r0:r1, c0:c1]`` are invalid
+    (not finite or not positive), counted a row at a time until the rest cannot change it."""
+    out = np.empty((h * w, 3))
+    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    n = 0
+    for r in range(h):
+        for c in range(w):
+            raw = depth[r * stride, c * stride]
+            z = np.float32(raw) * scale if convert else raw
+            if np.isfinite(z) and z > lo and z < hi:
+                z64 = np.float64(z)
+                x = rays_x[r, c] * z64
+                y = rays_y[r, c] * z64
+                pz = x * r20 + y * r21 + z64 * r22 + t2
+                if pz >= z_lo and pz <= z_hi:
+                    out[n, 0] = x * r00 + y * r01 + z64 * r02 + t0
+                    out[n, 1] = x * r10 + y * r11 + z64 * r12 + t1
+                    out[n, 2] = pz
+                    n += 1
+    bad = 0
+    for r in range(r0, r1):
+        row = depth[r, c0:c1]
+        in_row = np.int32(0)  # a narrow sum per row: the loop is vectorised (4 times faster)
+        for i in range(row.shape[0]):
+            v = row[i]
+            in_row += np.int32(not (v > 0 and np.isfinite(v)))
+        bad += in_row
+        if bad > limit:
+            return out[:n], True
+        if bad + (r1 - 1 - r) * (c1 - c0) <= limit:
+            return out[:n], False
+    return out[:n], bad > limit
+
+
+def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, starts, boxes, tolerance, offset_x,
+                  half_x, half_y, distance, beyond):
+    """``_explained_by_walls`` and ``_kept_points`` of the robot-frame points ``p`` (N, 3) at the
+    pose whose ground transform is ``G``: the points in the ground frame and their box, the walls'
+    pre-filter (``bounds``, as ``ProtectiveStop._wall_bounds``), each wall's plane (``planes``: n,
+    d, then the in-plane axes' two rows) and polygons (``wall_polys[k]`` to ``wall_polys[k + 1]``
+    of ``starts`` and ``boxes``, as ``_inside_kernel``), then ``_kept_kernel``'s test. Returns the
+    obstacle points (x, y), how many a wall explained, done (False as ``_kept_kernel``'s)."""
+    n = p.shape[0]
+    g = np.empty((n, 3))
+    x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
+    nan_x, nan_y = False, False
+    for i in range(n):
+        x = p[i, 0] * G[0, 0] + p[i, 1] * G[0, 1] + p[i, 2] * G[0, 2] + G[0, 3]
+        y = p[i, 0] * G[1, 0] + p[i, 1] * G[1, 1] + p[i, 2] * G[1, 2] + G[1, 3]
+        g[i, 0] = x
+        g[i, 1] = y
+        g[i, 2] = p[i, 0] * G[2, 0] + p[i, 1] * G[2, 1] + p[i, 2] * G[2, 2] + G[2, 3]
+        if x != x:
+            nan_x = True
+        else:
+            x_lo = min(x_lo, x)
+            x_hi = max(x_hi, x)
+        if y != y:
+            nan_y = True
+        else:
+            y_lo = min(y_lo, y)
+            y_hi = max(y_hi, y)
+    if nan_x:
+        x_lo, x_hi = np.nan, np.nan
+    if nan_y:
+        y_lo, y_hi = np.nan, np.nan
+    v = np.array([pose_x, pose_y, -pose_x, -pose_y, x_hi, y_hi, -x_lo, -y_lo])
+    near = np.empty(bounds.shape[0], np.int64)  # the walls the pre-filter keeps, in order
+    m = 0
+    for k in range(bounds.shape[0]):
+        skip = False
+        for j in range(8):
+            if v[j] < bounds[k, j]:
+                skip = True
+        if not skip:
+            near[m] = k
+            m += 1
+    out = np.empty((n, 2))
+    kept = 0
+    dropped = 0
+    for i in range(n):
+        gx, gy, gz = g[i, 0], g[i, 1], g[i, 2]
+        explained = False
+        for jw in range(m):
+            k = near[jw]
+            dist = gx * planes[k, 0] + gy * planes[k, 1] + gz * planes[k, 2]
+            dist += planes[k, 3]
+            if not abs(dist) < tolerance:
+                continue
+            x = gx * planes[k, 4] + gy * planes[k, 5] + gz * planes[k, 6]
+            y = gx * planes[k, 7] + gy * planes[k, 8] + gz * planes[k, 9]
+            for kp in range(wall_polys[k], wall_polys[k + 1]):
+                if not (boxes[kp, 0] <= x <= boxes[kp, 1] and boxes[kp, 2] <= y <= boxes[kp, 3]):
+                    continue
+                a, b = starts[kp], starts[kp + 1]
+                odd = False
+                xj = vertices[b - 1, 0]
+                yj = vertices[b - 1, 1]
+                for e in range(a, b):
+                    xi = vertices[e, 0]
+                    yi = vertices[e, 1]
+                    if (yi > y) != (yj > y) and x < (xj - xi) * (y - yi) / (yj - yi) + xi:
+                        odd = not odd
+                    xj = xi
+                    yj = yi
+                if odd:
+                    explained = True
+                    break
+            if explained:
+                break
+        if explained:
+            dx = max(abs(p[i, 0] - offset_x) - half_x, 0.0)
+            dy = max(abs(p[i, 1]) - half_y, 0.0)
+            if dx == 0.0:
+                close = dy <= distance
+            elif dy == 0.0:
+                close = dx <= distance
+            elif dx > beyond or dy > beyond:
+                close = False
+            else:
+                return out[:0], 0, False
+            if not close:
+                dropped += 1
+                continue
+        out[kept, 0] = p[i, 0]
+        out[kept, 1] = p[i, 1]
+        kept += 1
+    return out[:kept], dropped, True
 
 
 def _band_kernel(p, t, lo, hi):
@@ -347,6 +491,73 @@ def _merge_kernel(keys, mem_t, alive, new, t, cell_size):
     return stays, pick, new_keys[pick], True
 
 
+def _remember_kernel(mem, mem_t, keys, t, memory_time, C, z_test, fx, cx, fy, cy, min_range, depth, scale, convert,
+                     tolerance, xy, G, cell_size):
+    """``ProtectiveStop._remember`` up to its bound on the points, for a memory whose cell keys are
+    known: the points older than ``memory_time`` go, then those the frame sees through (the camera
+    at ``C``, ground to camera, points at height ``z_test``: ``_seen_through_kernel``'s test), then
+    the scan's points ``xy`` taken to the ground by ``G`` are added, one per cell
+    (``_merge_kernel``). Returns (points, times, keys, done); done False where those kernels decline."""
+    n_old = len(keys)
+    stays = np.empty(n_old, np.bool_)
+    h, w = depth.shape
+    scale32 = np.float32(scale)
+    for i in range(n_old):
+        stays[i] = t - mem_t[i] <= memory_time
+    ox, oy, oz = C[0, 3], C[1, 3], C[2, 3]
+    pz = z_test - oz
+    for i in range(n_old):
+        if not stays[i]:
+            continue
+        px = mem[i, 0] - ox
+        py = mem[i, 1] - oy
+        z = px * C[0, 2] + py * C[1, 2] + pz * C[2, 2]
+        if not z > min_range:
+            continue
+        u = np.rint(fx * (px * C[0, 0] + py * C[1, 0] + pz * C[2, 0]) / z + cx)
+        v = np.rint(fy * (px * C[0, 1] + py * C[1, 1] + pz * C[2, 1]) / z + cy)
+        if u != u or v != v:
+            return mem[:0], mem_t[:0], keys[:0], False
+        if not (0.0 <= u < w and 0.0 <= v < h):
+            continue
+        raw = depth[int(v), int(u)]
+        d = np.float32(raw) * scale32 if convert else raw
+        if np.isfinite(d) and d > z + tolerance:
+            stays[i] = False
+    n_new = xy.shape[0]
+    new = np.empty((n_new, 2))
+    for j in range(n_new):
+        new[j, 0] = xy[j, 0] * G[0, 0] + xy[j, 1] * G[0, 1] + G[0, 3]
+        new[j, 1] = xy[j, 0] * G[1, 0] + xy[j, 1] * G[1, 1] + G[1, 3]
+    pick = np.zeros(0, np.int64)
+    new_keys = np.zeros(0, np.int64)
+    if n_new:
+        stays, pick, new_keys, done = _merge_kernel(keys, mem_t, stays, new, t, cell_size)
+        if not done:
+            return mem[:0], mem_t[:0], keys[:0], False
+    m = 0
+    for i in range(n_old):
+        if stays[i]:
+            m += 1
+    out = np.empty((m + len(pick), 2))
+    out_t = np.empty(m + len(pick))
+    out_keys = np.empty(m + len(pick), np.int64)
+    m = 0
+    for i in range(n_old):
+        if stays[i]:
+            out[m, 0] = mem[i, 0]
+            out[m, 1] = mem[i, 1]
+            out_t[m] = mem_t[i]
+            out_keys[m] = keys[i]
+            m += 1
+    for j in range(len(pick)):
+        out[m + j, 0] = new[pick[j], 0]
+        out[m + j, 1] = new[pick[j], 1]
+        out_t[m + j] = t
+        out_keys[m + j] = new_keys[j]
+    return out, out_t, out_keys, True
+
+
 def _seen_through_kernel(p_cam, fx, cx, fy, cy, min_range, depth, scale, convert, tolerance):
     """Which points (camera frame, ``p_cam`` (N, 3)) the depth image shows something farther than,
     by more than ``tolerance``, at the pixel they project to: ``_remember``'s test. ``convert``:
@@ -449,3 +660,67 @@ def merge_cells(keys: np.ndarray, mem_t: np.ndarray, alive: np.ndarray, new: np.
     stays, pick, new_keys, done = _nb["_merge_kernel"](keys, np.ascontiguousarray(mem_t, np.float64), alive,
                                                        new, float(t), float(cell_size))
     return (stays, pick, new_keys) if done else None
+
+
+# (depth dtype, convert, min_range, max_range) -> the depth bounds as the kernels compare them
+_BOUNDS: Dict[Tuple[Any, bool, float, float], Tuple[Any, Any]] = {}
+
+
+def _depth_bounds(depth: np.ndarray, convert: bool, min_range: float, max_range: float) -> Tuple[Any, Any]:
+    """The bounds in the type numpy compares the depths in: float32 depths against a Python float
+    are compared in float32 (numpy 1's value-based casting and numpy 2's weak scalars alike)."""
+    key = (depth.dtype, convert, min_range, max_range)
+    b = _BOUNDS.get(key)
+    if b is None:
+        z_type = np.empty(0, np.float32 if convert else depth.dtype)
+        b = _BOUNDS[key] = (np.result_type(z_type, min_range).type(min_range),
+                            np.result_type(z_type, max_range).type(max_range))
+    return b
+
+
+def scan_frame(depth: np.ndarray, stride: int, shape: Tuple[int, int], depth_scale: float, min_range: float,
+               max_range: float, rays: Tuple[np.ndarray, np.ndarray], T: np.ndarray, z_lo: float, z_hi: float,
+               blind_fraction: float) -> Optional[Tuple[np.ndarray, bool]]:
+    """(the sampled points in the height band, robot frame, as ``ProtectiveStop.update_scan``'s numpy
+    code finds them; ``ProtectiveStop._near_blind`` with ``blind_fraction``), or None for a depth
+    image the kernels do not take. ``T``: the camera's robot transform (4, 4)."""
+    if not _frame_type(depth):
+        return None
+    convert = not (depth_scale == 1.0 and depth.dtype.kind == "f")
+    lo, hi = _depth_bounds(depth, convert, min_range, max_range)
+    h, w = depth.shape
+    r0, r1, c0, c1 = h // 4, 3 * h // 4, w // 4, 3 * w // 4
+    p, blind = _nb["_frame_kernel"](depth, stride, shape[0], shape[1], convert, np.float32(depth_scale), lo, hi,
+                                    rays[0], rays[1], T, float(z_lo), float(z_hi), r0, r1, c0, c1,
+                                    blind_fraction * ((r1 - r0) * (c1 - c0)))
+    return p, bool(blind)
+
+
+# (planes (W, 10), pre-filter bounds (W, 8), each wall's first polygon (W + 1), vertices (V, 2),
+# each polygon's first vertex (P + 1), polygon boxes (P, 4)): ``ProtectiveStop``'s walls for the kernel.
+WallTable = Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+def walls(p: np.ndarray, G: np.ndarray, pose_xy: Tuple[float, float], table: WallTable, tolerance: float,
+          offset_x: float, half_x: float, half_y: float, distance: float) -> Optional[Tuple[np.ndarray, int]]:
+    """(obstacle points (x, y), how many a wall explained) of the robot-frame points ``p`` at the pose
+    ``G`` (ground from robot, (4, 4)) and ``pose_xy``, or None where numpy decides."""
+    beyond = distance * (1.0 + 1e-9) + 1e-300
+    xy, dropped, done = _nb["_walls_kernel"](p, G, float(pose_xy[0]), float(pose_xy[1]), *table, float(tolerance),
+                                             float(offset_x), float(half_x), float(half_y), float(distance), beyond)
+    return (xy, int(dropped)) if done else None
+
+
+def remember(mem: np.ndarray, mem_t: np.ndarray, keys: np.ndarray, t: float, memory_time: float, C: np.ndarray,
+             z_test: float, K: np.ndarray, min_range: float, depth: np.ndarray, depth_scale: float, tolerance: float,
+             xy: np.ndarray, G: np.ndarray, cell_size: float) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """``ProtectiveStop._remember``'s memory (points, times, cell keys) before its bound on the
+    points, or None where numpy decides. ``C``: ground to camera (4, 4); ``G``: ground from robot."""
+    if not _frame_type(depth):
+        return None
+    convert = not (depth_scale == 1.0 and depth.dtype.kind == "f")
+    mem, mem_t, keys, done = _nb["_remember_kernel"](
+        mem, mem_t, keys, float(t), float(memory_time), C, float(z_test), float(K[0, 0]), float(K[0, 2]),
+        float(K[1, 1]), float(K[1, 2]), float(min_range), depth, float(depth_scale), convert, float(tolerance), xy, G,
+        float(cell_size))
+    return (mem, mem_t, keys) if done else None
