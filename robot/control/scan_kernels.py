@@ -2,24 +2,24 @@
 
 The scan (:meth:`robot.control.protective_stop.ProtectiveStop.update_scan`) runs on every depth
 frame of every camera. Its numpy code is a few dozen small calls on a few thousand points each,
-whose per-call overhead is most of their cost; here the stretches between its matrix products
-are numba-compiled loops:
+whose per-call overhead is most of their cost; here it is three compiled loops, one call each:
 
-* the sampled pixels with a valid depth, in camera coordinates (:func:`camera_points`);
-* those in the height band, in the robot frame (:func:`in_band`); in the ground frame, with
-  their box for the walls' pre-filter (:func:`to_ground`);
-* per wall, the points near its plane (:func:`close_points`) and those inside its polygons, the
-  even-odd rule (:func:`mark_inside`); the points left as obstacles (:func:`kept_points`);
-* which remembered points a frame sees through (:func:`seen_through`), and the memory's one point
-  per grid cell when a frame's points are added, a hash instead of a sort (:func:`merge_cells`).
+* the sampled pixels with a valid depth, back-projected into the robot frame, those in the
+  height band kept, and whether the view is blinded close up (:func:`scan_frame`);
+* their ground coordinates, the walls' pre-filter, each near wall's plane distance and polygons
+  (the even-odd rule), and the points left as obstacles (:func:`walls`);
+* the memory: what is too old or seen through goes, the frame's points come in, one per grid
+  cell, a hash instead of a sort (:func:`remember`, its merge also :func:`merge_cells`).
 
 The numpy code in ``protective_stop`` stays the reference and the fallback, and the kernels give
 its results exactly, not to a rounding: the same operations on the same floats in the same order
 (fastmath is off: no reassociation, no fused multiply-adds), comparisons in the type numpy
 compares in, integers otherwise. Where numpy's answer would hang on a platform's conversion of a
 NaN or huge float to int64, or on a hypotenuse (libm's), a kernel declines (returns None) and the
-caller uses numpy. The matrix products stay numpy's (BLAS) on the same operands, so that their
-rounding is what it always was.
+caller uses numpy. That includes the coordinate changes: the numpy code writes each of them out
+(``protective_stop._rotated``, each sum left to right) rather than calling a matrix product,
+whose order of operations is its BLAS's and differs between machines (fused multiply-adds on
+this one's OpenBLAS), so that the kernels can repeat it on every platform.
 
 The kernels release the GIL (``nogil``): the scan runs on the localization worker beside the
 event loop.
@@ -49,8 +49,7 @@ from robot.localization import fit_kernels
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher, once they compiled
 _failed = ""  # why the kernels did not compile ("": they did, or were not tried)
 _lock = threading.Lock()  # one compilation, whichever thread scans first
-_KERNELS = ("_sample_kernel", "_band_kernel", "_ground_kernel", "_close_kernel", "_inside_kernel", "_kept_kernel",
-            "_seen_through_kernel", "_merge_kernel", "_frame_kernel", "_walls_kernel", "_remember_kernel")
+_KERNELS = ("_frame_kernel", "_walls_kernel", "_remember_kernel", "_merge_kernel")
 
 
 def backend() -> str:
@@ -109,7 +108,7 @@ def jit_kernels() -> Dict[str, Any]:
 
 def _run_each_kernel() -> None:
     """Each kernel once, on the argument types the scan passes (a frame in raw uint16 units or in
-    float32 metres; the read-only ray tables; C-contiguous products of numpy)."""
+    float32 metres, writable or not; the read-only ray tables; C-contiguous arrays of its own)."""
     rays = np.zeros((2, 2)), np.zeros((2, 2))
     for r in rays:
         r.flags.writeable = False
@@ -119,23 +118,13 @@ def _run_each_kernel() -> None:
     for depth, scale in ((np.full((4, 4), 1000, np.uint16), 0.001), (np.full((4, 4), 1.0, np.float32), 1.0)):
         for writeable in (True, False):  # a replayed frame may be a read-only view of its message
             depth.flags.writeable = writeable
-            camera_points(depth, 2, (2, 2), scale, 0.2, 3.0, rays)
-            seen_through(p, K, 0.2, depth, scale, 0.04)
             scan_frame(depth, 2, (2, 2), scale, 0.2, 3.0, rays, T, 0.04, 1.8, 0.6)
             remember(p[:, :2].copy(), np.zeros(2), np.zeros(2, np.int64), 1.0, 3.0, T, 0.5, K, 0.2, depth, scale,
                      0.04, p[:, :2].copy(), T, 0.02)
-    explained = np.zeros(2, np.bool_)
     table = (np.zeros((1, 10)), np.zeros((1, 8)), np.array([0, 1], np.int64),
              np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), np.array([0, 4], np.int64),
              np.array([[0.0, 1.0, 0.0, 1.0]]))
     walls(p, T, (0.0, 0.0), table, 0.04, 0.0, 0.11, 0.11, 0.06)
-    in_band(p, K[0], 0.04, 1.8)
-    to_ground(p.copy(), K[0])
-    idx, rows = close_points(p[:, 0].copy(), 0.5, 0.04, explained, p)
-    flat = (np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), np.array([0, 4], np.int64),
-            np.array([[0.0, 1.0, 0.0, 1.0]]))
-    mark_inside(p[:, :2].copy(), flat, np.arange(2, dtype=np.int64), explained)
-    kept_points(p, explained, 0.0, 0.11, 0.11, 0.06)
     merge_cells(np.array([(3 << 32) + 4], np.int64), np.zeros(1), np.ones(1, np.bool_), p[:, :2].copy(), 1.0, 0.02)
 
 
@@ -143,26 +132,6 @@ def _run_each_kernel() -> None:
 
 _LIMIT = 2.0 ** 31  # cells within this of the origin have a key of two int32 halves
 _HASH = -7046029254386353131  # 0x9E3779B97F4A7C15 as int64: Fibonacci hashing (multiplies wrap)
-
-
-def _sample_kernel(depth, stride, h, w, convert, scale, lo, hi, rays_x, rays_y):
-    """``_camera_points``: every ``stride``-th pixel of ``depth`` (h x w of them) with a finite depth
-    between ``lo`` and ``hi``, in camera coordinates (N, 3), in row-major order. ``convert``: raw
-    units, metres float32(raw) * float32(scale). The bounds come in the type numpy compares the
-    depths in (float32 for float32 depths and thresholds within its range)."""
-    out = np.empty((h * w, 3))
-    n = 0
-    for r in range(h):
-        for c in range(w):
-            raw = depth[r * stride, c * stride]
-            z = np.float32(raw) * scale if convert else raw
-            if np.isfinite(z) and z > lo and z < hi:
-                z64 = np.float64(z)
-                out[n, 0] = rays_x[r, c] * z64
-                out[n, 1] = rays_y[r, c] * z64
-                out[n, 2] = z64
-                n += 1
-    return out[:n]
 
 
 def _frame_kernel(depth, stride, h, w, convert, scale, lo, hi, rays_x, rays_y, T, z_lo, z_hi, r0, r1, c0, c1, limit):
@@ -300,143 +269,6 @@ def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, st
     return out[:kept], dropped, True
 
 
-def _band_kernel(p, t, lo, hi):
-    """``_in_band``: the rows of ``p`` + ``t`` (N, 3) whose z is within [lo, hi], in order."""
-    out = np.empty(p.shape)
-    m = 0
-    for i in range(p.shape[0]):
-        z = p[i, 2] + t[2]
-        if z >= lo and z <= hi:
-            out[m, 0] = p[i, 0] + t[0]
-            out[m, 1] = p[i, 1] + t[1]
-            out[m, 2] = z
-            m += 1
-    return out[:m]
-
-
-def _ground_kernel(p, t):
-    """``p += t`` in place for (N, 3) ``p``; returns the min and max of x and of y (NaN if any is,
-    as numpy's)."""
-    x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
-    nan_x, nan_y = False, False
-    for i in range(p.shape[0]):
-        x = p[i, 0] + t[0]
-        y = p[i, 1] + t[1]
-        p[i, 0] = x
-        p[i, 1] = y
-        p[i, 2] = p[i, 2] + t[2]
-        if x != x:
-            nan_x = True
-        else:
-            x_lo = min(x_lo, x)
-            x_hi = max(x_hi, x)
-        if y != y:
-            nan_y = True
-        else:
-            y_lo = min(y_lo, y)
-            y_hi = max(y_hi, y)
-    if nan_x:
-        x_lo, x_hi = np.nan, np.nan
-    if nan_y:
-        y_lo, y_hi = np.nan, np.nan
-    return x_lo, x_hi, y_lo, y_hi
-
-
-def _close_kernel(dist, d, tolerance, explained, p):
-    """The points not explained yet with |dist + d| < tolerance: their indices, and their rows of
-    ``p`` (a C-contiguous copy, for the matrix product that follows)."""
-    idx = np.empty(len(dist), np.int64)
-    k = 0
-    for i in range(len(dist)):
-        if not explained[i] and abs(dist[i] + d) < tolerance:
-            idx[k] = i
-            k += 1
-    rows = np.empty((k, 3))
-    for j in range(k):
-        rows[j, 0] = p[idx[j], 0]
-        rows[j, 1] = p[idx[j], 1]
-        rows[j, 2] = p[idx[j], 2]
-    return idx[:k], rows
-
-
-def _inside_kernel(q, vertices, starts, boxes, idx, explained):
-    """Marks ``explained[idx[i]]`` for each point ``q[i]`` (in-plane axes) that lies in any of the
-    polygons (``vertices[starts[k]:starts[k + 1]]``): ``protective_stop._inside_prepared``'s
-    even-odd rule, its arithmetic, over the polygons whose box (x_lo, x_hi, y_lo, y_hi; x widened
-    for rounding) holds the point (the cull ``_inside_polygons`` proves exact). Returns whether
-    any was."""
-    n = q.shape[0]
-    if n == 0:
-        return False
-    qx_lo, qx_hi, qy_lo, qy_hi = q[0, 0], q[0, 0], q[0, 1], q[0, 1]
-    for i in range(n):
-        qx_lo = min(qx_lo, q[i, 0])
-        qx_hi = max(qx_hi, q[i, 0])
-        qy_lo = min(qy_lo, q[i, 1])
-        qy_hi = max(qy_hi, q[i, 1])
-    near = np.empty(len(starts) - 1, np.int64)  # the polygons whose box the points' box meets
-    m = 0
-    for k in range(len(starts) - 1):
-        if not (boxes[k, 1] < qx_lo or boxes[k, 0] > qx_hi or boxes[k, 3] < qy_lo or boxes[k, 2] > qy_hi):
-            near[m] = k
-            m += 1
-    found = False
-    for i in range(n):
-        x = q[i, 0]
-        y = q[i, 1]
-        for j in range(m):
-            k = near[j]
-            if not (boxes[k, 0] <= x <= boxes[k, 1] and boxes[k, 2] <= y <= boxes[k, 3]):
-                continue
-            a, b = starts[k], starts[k + 1]
-            odd = False
-            xj = vertices[b - 1, 0]
-            yj = vertices[b - 1, 1]
-            for e in range(a, b):
-                xi = vertices[e, 0]
-                yi = vertices[e, 1]
-                if (yi > y) != (yj > y) and x < (xj - xi) * (y - yi) / (yj - yi) + xi:
-                    odd = not odd
-                xj = xi
-                yj = yi
-            if odd:
-                explained[idx[i]] = True
-                found = True
-                break
-    return found
-
-
-def _kept_kernel(p, explained, offset_x, half_x, half_y, distance, beyond):
-    """``update_scan``'s obstacle points: (x, y) of the rows of ``p`` not explained by a wall or
-    within ``distance`` of the footprint, and how many were dropped; ``done`` False where the
-    distance needs a hypotenuse (a point off a corner of the footprint, nearer than ``beyond`` in
-    both axes), which is left to numpy's hypot. Along an axis, hypot(d, 0) = d exactly (C99), and
-    beyond ``beyond`` (``distance`` and a margin over hypot's rounding) in either axis it is out."""
-    n = p.shape[0]
-    out = np.empty((n, 2))
-    m = 0
-    dropped = 0
-    for i in range(n):
-        if explained[i]:
-            dx = max(abs(p[i, 0] - offset_x) - half_x, 0.0)
-            dy = max(abs(p[i, 1]) - half_y, 0.0)
-            if dx == 0.0:
-                near = dy <= distance
-            elif dy == 0.0:
-                near = dx <= distance
-            elif dx > beyond or dy > beyond:
-                near = False
-            else:
-                return out[:0], 0, False
-            if not near:
-                dropped += 1
-                continue
-        out[m, 0] = p[i, 0]
-        out[m, 1] = p[i, 1]
-        m += 1
-    return out[:m], dropped, True
-
-
 def _merge_kernel(keys, mem_t, alive, new, t, cell_size):
     """``ProtectiveStop._add_to_cells`` on a hash of the cells. ``keys`` (one per cell) and ``mem_t``
     of the memory, ``alive`` its points still kept, ``new`` (M, 2) points of time ``t``. Returns
@@ -558,35 +390,6 @@ def _remember_kernel(mem, mem_t, keys, t, memory_time, C, z_test, fx, cx, fy, cy
     return out, out_t, out_keys, True
 
 
-def _seen_through_kernel(p_cam, fx, cx, fy, cy, min_range, depth, scale, convert, tolerance):
-    """Which points (camera frame, ``p_cam`` (N, 3)) the depth image shows something farther than,
-    by more than ``tolerance``, at the pixel they project to: ``_remember``'s test. ``convert``:
-    depth in raw units, metres are float32(raw) * float32(scale) as ``_metres`` converts them.
-    Returns (seen through, done); done is False when a point in front of the camera projects to a
-    NaN pixel coordinate, whose int64 conversion numpy leaves to the platform."""
-    n = p_cam.shape[0]
-    h, w = depth.shape
-    seen = np.zeros(n, np.bool_)
-    scale32 = np.float32(scale)
-    for i in range(n):
-        z = p_cam[i, 2]
-        if not z > min_range:
-            continue
-        # As numpy: np.round is round half to even; the comparisons on the rounded float are the
-        # ones on its int64 (an integer below 2^63, or out of the image either way).
-        u = np.rint(fx * p_cam[i, 0] / z + cx)
-        v = np.rint(fy * p_cam[i, 1] / z + cy)
-        if u != u or v != v:
-            return seen, False
-        if not (0.0 <= u < w and 0.0 <= v < h):
-            continue
-        raw = depth[int(v), int(u)]
-        d = np.float32(raw) * scale32 if convert else raw
-        if np.isfinite(d) and d > z + tolerance:
-            seen[i] = True
-    return seen, True
-
-
 # -- the kernels' callers: numpy's arguments in, the numpy code's values out (None: numpy decides) --
 
 _FRAME_TYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.float32, np.float64))  # native byte order
@@ -595,63 +398,6 @@ _FRAME_TYPES = tuple(np.dtype(t) for t in (np.uint8, np.uint16, np.float32, np.f
 def _frame_type(depth: np.ndarray) -> bool:
     """Whether the kernels take this depth image (else numpy scans it)."""
     return depth.ndim == 2 and depth.dtype in _FRAME_TYPES
-
-
-def camera_points(depth: np.ndarray, stride: int, shape: Tuple[int, int], depth_scale: float, min_range: float,
-                  max_range: float, rays: Tuple[np.ndarray, np.ndarray]) -> Optional[np.ndarray]:
-    """``protective_stop._camera_points`` of ``depth[::stride, ::stride]`` (``shape`` of them)."""
-    if not _frame_type(depth):
-        return None
-    convert = not (depth_scale == 1.0 and depth.dtype.kind == "f")
-    # The bounds in the type numpy compares the depths in: float32 depths against a Python float
-    # are compared in float32 (numpy 1's value-based casting and numpy 2's weak scalars alike).
-    z_type = np.empty(0, np.float32 if convert else depth.dtype)
-    lo = np.result_type(z_type, min_range).type(min_range)
-    hi = np.result_type(z_type, max_range).type(max_range)
-    return _nb["_sample_kernel"](depth, stride, shape[0], shape[1], convert, np.float32(depth_scale), lo, hi, *rays)
-
-
-def in_band(p: np.ndarray, t: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """``protective_stop._in_band``: the rows of ``p + t`` whose z is within [lo, hi]."""
-    return _nb["_band_kernel"](p, np.ascontiguousarray(t, np.float64), float(lo), float(hi))
-
-
-def to_ground(p: np.ndarray, t: np.ndarray) -> Tuple[float, float, float, float]:
-    """``p += t`` in place; (min x, max x, min y, max y) of the result."""
-    return _nb["_ground_kernel"](p, np.ascontiguousarray(t, np.float64))
-
-
-def close_points(dist: np.ndarray, d: float, tolerance: float, explained: np.ndarray, p: np.ndarray
-                 ) -> Tuple[np.ndarray, np.ndarray]:
-    """(indices, rows of ``p``) of the points not explained yet with |dist + d| < tolerance."""
-    return _nb["_close_kernel"](dist, float(d), float(tolerance), explained, p)
-
-
-def mark_inside(q: np.ndarray, flat: Tuple[np.ndarray, np.ndarray, np.ndarray], idx: np.ndarray,
-                explained: np.ndarray) -> bool:
-    """Sets ``explained[idx[i]]`` where ``q[i]`` lies in one of the polygons ``flat`` (vertices,
-    each polygon's first vertex, boxes); whether any did."""
-    return bool(_nb["_inside_kernel"](q, flat[0], flat[1], flat[2], idx, explained))
-
-
-def kept_points(p: np.ndarray, explained: np.ndarray, offset_x: float, half_x: float, half_y: float,
-                distance: float) -> Optional[Tuple[np.ndarray, int]]:
-    """(obstacle points (x, y), how many a wall explained) of ``update_scan``, or None."""
-    beyond = distance * (1.0 + 1e-9) + 1e-300
-    xy, dropped, done = _nb["_kept_kernel"](p, explained, float(offset_x), float(half_x), float(half_y),
-                                            float(distance), beyond)
-    return (xy, int(dropped)) if done else None
-
-
-def seen_through(p_cam: np.ndarray, K: np.ndarray, min_range: float, depth: np.ndarray, depth_scale: float,
-                 tolerance: float) -> Optional[np.ndarray]:
-    """Which points of ``p_cam`` (camera frame) the frame ``depth`` sees through, or None."""
-    if not _frame_type(depth):
-        return None
-    convert = not (depth_scale == 1.0 and depth.dtype.kind == "f")
-    seen, done = _nb["_seen_through_kernel"](p_cam, float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2]),
-                                             float(min_range), depth, float(depth_scale), convert, float(tolerance))
-    return seen if done else None
 
 
 def merge_cells(keys: np.ndarray, mem_t: np.ndarray, alive: np.ndarray, new: np.ndarray, t: float,
