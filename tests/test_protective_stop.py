@@ -513,7 +513,7 @@ def test_the_polygon_tests_are_the_plain_even_odd_rule(scan_backend):
         for poly in w.polygons_2d:
             plain |= _plain_inside_polygon(q, poly)
         assert 0 < np.count_nonzero(plain) < len(q)
-        assert np.array_equal(ps._inside_polygons(q, w), plain)
+        assert np.array_equal(ps._inside_polygons(q[:, 0], q[:, 1], w), plain)
         if scan_backend == "numba":
             # The kernel tests the walls on points in the robot frame: these points on the wall's
             # plane, from a pose beside it, tested against the in-plane coordinates it finds.

@@ -151,8 +151,8 @@ def _inside_prepared(x: np.ndarray, y: np.ndarray, poly: _Polygon) -> np.ndarray
     return inside
 
 
-def _inside_polygons(q: np.ndarray, wall: _Wall) -> np.ndarray:
-    """Whether each point (in-plane axes) is in any of the wall's polygons (:func:`_inside_prepared`),
+def _inside_polygons(qx: np.ndarray, qy: np.ndarray, wall: _Wall) -> np.ndarray:
+    """Whether each point (in-plane axes ``qx``, ``qy``) is in any of the wall's polygons (:func:`_inside_prepared`),
     each polygon tested only on the points in its bounding box.
 
     That cull is exact. Below or above the polygon (y outside [y_lo, y_hi]) no edge crosses the
@@ -160,11 +160,10 @@ def _inside_polygons(q: np.ndarray, wall: _Wall) -> np.ndarray:
     closed polygon crosses any row an even number of times; right of it none is. Crossings are
     interpolated between their edge's end points to within about 1e-15 of the coordinates, far
     inside the boxes' margin in x."""
-    qx, qy = q[:, 0], q[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         if len(wall.polygons) == 1:  # the box tests would cost as much as the polygon's
             return _inside_prepared(qx, qy, wall.polygons[0])
-        inside = np.zeros(len(q), dtype=bool)
+        inside = np.zeros(len(qx), dtype=bool)
         x_lo, x_hi, y_lo, y_hi = float(qx.min()), float(qx.max()), float(qy.min()), float(qy.max())
         for poly in wall.polygons:
             bx0, bx1, by0, by1 = poly.box
@@ -191,15 +190,19 @@ def depth_points_robot(depth_m: np.ndarray, K: np.ndarray, T_robot_camera: np.nd
 
 
 def _rotated(p: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """``p @ R.T`` for (N, k) ``p``, each sum written out left to right, ``(p_0 R_j0 + p_1 R_j1) + ...``:
-    the order the compiled kernels compute in, on every platform. A matrix product's order is its
-    BLAS's (fused multiply-adds on one CPU, pairs summed on another), which no kernel can repeat."""
-    out = np.empty((len(p), R.shape[0]))
-    for j in range(R.shape[0]):
-        col = out[:, j]
-        np.multiply(p[:, 0], R[j, 0], out=col)
-        for i in range(1, p.shape[1]):
-            col += p[:, i] * R[j, i]
+    """``p @ R.T`` for (N, k) ``p``, summed as :func:`_product` sums."""
+    return _product(p.T, R).T
+
+
+def _product(P: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``R @ P`` for points as the columns of ``P`` (k, N), each sum written out left to right,
+    ``(R_j0 P_0 + R_j1 P_1) + ...``: every coordinate change of the scan, rather than a matrix
+    product, whose order of operations is its BLAS's (fused multiply-adds on one machine, pairs
+    summed on another). The compiled kernels compute the same sums in the same order, on every
+    platform. (m, N); a row at a time, each a contiguous pass."""
+    out = P[0] * R[:, 0:1]
+    for i in range(1, P.shape[0]):
+        out += P[i] * R[:, i:i + 1]
     return out
 
 
@@ -218,19 +221,33 @@ def _pixel_rays(shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.
 
 def _camera_points(z: np.ndarray, rays: Tuple[np.ndarray, np.ndarray], min_range: float, max_range: float) -> np.ndarray:
     """The sampled pixels with a valid depth ``z`` (m), in camera coordinates (N, 3), row by row."""
+    return _camera_rows(z, rays, min_range, max_range).T
+
+
+def _camera_rows(z: np.ndarray, rays: Tuple[np.ndarray, np.ndarray], min_range: float, max_range: float) -> np.ndarray:
+    """:func:`_camera_points` as (3, N): x, y and z each a contiguous row."""
     ok = np.isfinite(z) & (z > min_range) & (z < max_range)
-    z = z[ok].astype(float)
-    p_camera = np.empty((len(z), 3))
-    np.multiply(rays[0][ok], z, out=p_camera[:, 0])
-    np.multiply(rays[1][ok], z, out=p_camera[:, 1])
-    p_camera[:, 2] = z
-    return p_camera
+    idx = ok.ravel().nonzero()[0]
+    out = np.empty((3, len(idx)))
+    out[2] = z.ravel().take(idx)
+    np.multiply(rays[0].ravel().take(idx), out[2], out=out[0])
+    np.multiply(rays[1].ravel().take(idx), out[2], out=out[1])
+    return out
 
 
-def _in_band(p: np.ndarray, t: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """The rows of ``p + t`` whose z is within [lo, hi] (``p`` is changed)."""
-    _add_columns(p, t)
-    return _rows(p, (p[:, 2] >= lo) & (p[:, 2] <= hi))
+def _robot_band(P: np.ndarray, T: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """The camera points (the columns of ``P``, (3, N)) in the robot frame (``T``, robot from
+    camera) whose height is within [lo, hi], (N, 3): the height first, the rest for those only."""
+    pz = _product(P, T[2:3, :3])[0]
+    pz += T[2, 3]
+    keep = ((pz >= lo) & (pz <= hi)).nonzero()[0]
+    if len(keep) < len(pz):
+        P, pz = P.take(keep, axis=1), pz.take(keep)
+    out = np.empty((3, len(pz)))
+    out[:2] = _product(P, T[:2, :3])
+    out[:2] += T[:2, 3:4]
+    out[2] = pz
+    return out.T
 
 
 def _add_columns(p: np.ndarray, t: np.ndarray) -> None:
@@ -410,9 +427,8 @@ class ProtectiveStop:
                 kept = scan_kernels.walls(p_robot, T_ground_robot, pose[:2], self._wall_table, c.wall_tolerance,
                                           c.footprint_offset_x, self._half_x, self._half_y, c.always_distance)
         else:
-            p_camera = _camera_points(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
-            p_robot = _in_band(_rotated(p_camera, cam.T_robot_camera[:3, :3]), cam.T_robot_camera[:3, 3], c.min_height,
-                               c.max_height)
+            P = _camera_rows(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
+            p_robot = _robot_band(P, cam.T_robot_camera, c.min_height, c.max_height)
             near_blind = self._near_blind(depth_m)
         if kept is None and with_walls and len(p_robot):
             kept = self._kept_points(p_robot, self._explained_by_walls(p_robot, pose, T_ground_robot))
@@ -425,17 +441,22 @@ class ProtectiveStop:
 
     def _kept_points(self, p_robot: np.ndarray, explained: np.ndarray) -> Tuple[np.ndarray, int]:
         """(x, y) of the points no wall explains or near the footprint, and how many were dropped."""
+        x, y = p_robot[:, 0], p_robot[:, 1]
         wall = explained.nonzero()[0]
         ignored = 0
         if len(wall):
             # Only an explained point can be kept for being near: test just those.
-            drop = wall[~self._near_footprint(p_robot.take(wall, axis=0), self.config.always_distance)]
+            drop = wall[~self._near_footprint_xy(x.take(wall), y.take(wall), self.config.always_distance)]
             ignored = len(drop)
             if ignored:
-                keep = np.ones(len(p_robot), dtype=bool)
+                keep = np.ones(len(x), dtype=bool)
                 keep[drop] = False
-                p_robot = _rows(p_robot, keep)
-        return np.ascontiguousarray(p_robot[:, :2]), ignored
+                idx = keep.nonzero()[0]
+                x, y = x.take(idx), y.take(idx)
+        out = np.empty((len(x), 2))
+        out[:, 0] = x
+        out[:, 1] = y
+        return out, ignored
 
     def _pixel_rays(self, shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.ndarray, np.ndarray]:
         K = np.asarray(K)
@@ -510,15 +531,17 @@ class ProtectiveStop:
         alive = None  # the remembered points this frame does not see through (None: all)
         if len(mem):
             R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
-            p_ground_o = np.empty((len(mem), 3))  # the points less the camera position
-            np.subtract(mem, o[:2], out=p_ground_o[:, :2])
-            p_ground_o[:, 2] = z_test - o[2]
-            seen = self._seen_through(_rotated(p_ground_o, R.T), K, depth_m, depth_scale)
+            # The points less the camera position; their height is the test height for all, a
+            # column of one number whose products are the same for every point.
+            p_cam = _product(mem.T - o[:2, None], R[:2].T)
+            p_cam += ((z_test - o[2]) * R[2])[:, None]
+            seen = self._seen_through(p_cam[0], p_cam[1], p_cam[2], K, depth_m, depth_scale)
             if seen.any():
                 alive = ~seen
         if len(scan.points_xy):
-            new = _rotated(scan.points_xy, T_ground_robot[:2, :2])
-            _add_columns(new, T_ground_robot[:2, 3])
+            new = _product(scan.points_xy.T, T_ground_robot[:2, :2])
+            new += T_ground_robot[:2, 3:4]
+            new = new.T
             if alive is not None:
                 mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
             if keys is not None:
@@ -533,16 +556,16 @@ class ProtectiveStop:
                 mem, mem_t, keys = self._one_per_cell(mem, mem_t)
         return mem, mem_t, keys
 
-    def _seen_through(self, p_cam: np.ndarray, K: np.ndarray, depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    def _seen_through(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, K: np.ndarray, depth_m: np.ndarray,
+                      depth_scale: float) -> np.ndarray:
         """Which points (camera frame) the frame shows something farther than at their pixel."""
-        z = p_cam[:, 2]
         h, w = depth_m.shape
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.round(K[0, 0] * p_cam[:, 0] / z + K[0, 2]).astype(np.int64, copy=False)
-            v = np.round(K[1, 1] * p_cam[:, 1] / z + K[1, 2]).astype(np.int64, copy=False)
+            u = np.round(K[0, 0] * x / z + K[0, 2]).astype(np.int64, copy=False)
+            v = np.round(K[1, 1] * y / z + K[1, 2]).astype(np.int64, copy=False)
         # As unsigned, a negative index is above any image size: one comparison per bound pair.
         in_view = (z > self.robot.localizer.min_range) & (u.view(np.uint64) < w) & (v.view(np.uint64) < h)
-        seen = np.zeros(len(p_cam), dtype=bool)
+        seen = np.zeros(len(z), dtype=bool)
         idx = in_view.nonzero()[0]
         if len(idx):
             d = _metres(depth_m[v[idx], u[idx]], depth_scale)
@@ -611,12 +634,12 @@ class ProtectiveStop:
 
     def _explained_by_walls(self, p_robot: np.ndarray, pose: Tuple[float, float, float], T_ground_robot: np.ndarray
                             ) -> np.ndarray:
-        p_ground = _rotated(p_robot, T_ground_robot[:3, :3])
-        _add_columns(p_ground, T_ground_robot[:3, 3])
-        gx, gy = p_ground[:, 0], p_ground[:, 1]
+        g = _product(p_robot.T, T_ground_robot[:3, :3])
+        g += T_ground_robot[:3, 3:4]
+        gx, gy = g[0], g[1]
         x_lo, x_hi, y_lo, y_hi = gx.min(), gx.max(), gy.min(), gy.max()
         tol = self.config.wall_tolerance
-        explained = np.zeros(len(p_ground), dtype=bool)
+        explained = np.zeros(len(gx), dtype=bool)
         xy = np.asarray(pose[:2])
         # The walls within range of the pose whose box the points reach: no other wall can explain
         # any of them, so skipping those changes nothing.
@@ -624,7 +647,7 @@ class ProtectiveStop:
         some = False
         for k in (~(v < self._wall_bounds).any(axis=1)).nonzero()[0].tolist():
             w = self._walls[k]
-            dist = _rotated(p_ground, w.n[None, :])[:, 0]
+            dist = _product(g, w.n[None, :])[0]
             dist += w.d
             close = np.abs(dist) < tol
             if some:
@@ -632,16 +655,19 @@ class ProtectiveStop:
             idx = close.nonzero()[0]
             if len(idx) == 0:
                 continue
-            q = _rotated(p_ground.take(idx, axis=0), w.R_plane)
-            inside = _inside_polygons(q, w)
+            q = _product(g.take(idx, axis=1), w.R_plane)
+            inside = _inside_polygons(q[0], q[1], w)
             if inside.any():
                 explained[idx[inside]] = True
                 some = True
         return explained
 
     def _near_footprint(self, xy: np.ndarray, distance: float) -> np.ndarray:
-        dx = np.maximum(np.abs(xy[:, 0] - self.config.footprint_offset_x) - self._half_x, 0.0)
-        dy = np.maximum(np.abs(xy[:, 1]) - self._half_y, 0.0)
+        return self._near_footprint_xy(xy[:, 0], xy[:, 1], distance)
+
+    def _near_footprint_xy(self, x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
+        dx = np.maximum(np.abs(x - self.config.footprint_offset_x) - self._half_x, 0.0)
+        dy = np.maximum(np.abs(y) - self._half_y, 0.0)
         return np.hypot(dx, dy) <= distance
 
     # -- per control tick --------------------------------------------------------------------

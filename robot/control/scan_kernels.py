@@ -183,14 +183,19 @@ def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, st
     obstacle points (x, y), how many a wall explained, done (False as ``_kept_kernel``'s)."""
     n = p.shape[0]
     g = np.empty((n, 3))
+    # The transform in locals: read from G, each store to g would make the compiler read it again.
+    g00, g01, g02, g03 = G[0, 0], G[0, 1], G[0, 2], G[0, 3]
+    g10, g11, g12, g13 = G[1, 0], G[1, 1], G[1, 2], G[1, 3]
+    g20, g21, g22, g23 = G[2, 0], G[2, 1], G[2, 2], G[2, 3]
     x_lo, x_hi, y_lo, y_hi = np.inf, -np.inf, np.inf, -np.inf
     nan_x, nan_y = False, False
     for i in range(n):
-        x = p[i, 0] * G[0, 0] + p[i, 1] * G[0, 1] + p[i, 2] * G[0, 2] + G[0, 3]
-        y = p[i, 0] * G[1, 0] + p[i, 1] * G[1, 1] + p[i, 2] * G[1, 2] + G[1, 3]
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        x = px * g00 + py * g01 + pz * g02 + g03
+        y = px * g10 + py * g11 + pz * g12 + g13
         g[i, 0] = x
         g[i, 1] = y
-        g[i, 2] = p[i, 0] * G[2, 0] + p[i, 1] * G[2, 1] + p[i, 2] * G[2, 2] + G[2, 3]
+        g[i, 2] = px * g20 + py * g21 + pz * g22 + g23
         if x != x:
             nan_x = True
         else:
