@@ -384,6 +384,7 @@ class ProtectiveStop:
         # The cameras' mounts as the kernels take them (float64, C order, writable like every frame's).
         self._T_robot_camera = {cam.name: np.array(cam.T_robot_camera, dtype=np.float64, order="C")
                                 for cam in self.robot.cameras}
+        self._footprint = (c.footprint_offset_x, self._half_x, self._half_y, c.always_distance)
         # (shape, stride, K) -> the sampled pixels' rays: built once per camera stream.
         self._rays: Dict[tuple, Tuple[np.ndarray, np.ndarray]] = {}
         # (memory points, their times, their cell keys): the keys of the memory this object wrote
@@ -414,18 +415,25 @@ class ProtectiveStop:
         rays = self._pixel_rays(shape, K, stride)
         min_range = self.robot.localizer.min_range
         T_ground_robot = pose_to_T_ground_robot(*pose) if pose is not None else None
-        with_walls = T_ground_robot is not None and self._walls
-        kept = sampled = None
+        with_walls = T_ground_robot is not None and bool(self._walls)
+        kept = got = merged = None
         if compiled:
-            # The frame's points and its view blindness in one kernel call, the walls in another.
-            sampled = scan_kernels.scan_frame(depth_m, stride, shape, depth_scale, min_range, c.max_range, rays,
-                                              self._T_robot_camera[camera], c.min_height, c.max_height,
-                                              c.near_blind_fraction)
-        if sampled is not None:
-            p_robot, near_blind = sampled
-            if with_walls and len(p_robot):
-                kept = scan_kernels.walls(p_robot, T_ground_robot, pose[:2], self._wall_table, c.wall_tolerance,
-                                          c.footprint_offset_x, self._half_x, self._half_y, c.always_distance)
+            # The frame's points, its view blindness, the walls and the memory in one kernel call.
+            memory, C, z_test = None, None, 0.0
+            if T_ground_robot is not None:
+                keys = self._known_keys()
+                if keys is not None:
+                    memory = (*self.memory, keys)
+                    C, z_test = self._camera_view(camera, T_ground_robot)
+            got = scan_kernels.scan(depth_m, stride, shape, depth_scale, min_range, c.max_range, rays,
+                                    self._T_robot_camera[camera], c.min_height, c.max_height, c.near_blind_fraction,
+                                    T_ground_robot, pose[:2] if pose is not None else (0.0, 0.0),
+                                    self._wall_table if with_walls else None, self._footprint, c.wall_tolerance,
+                                    memory, float(t), c.memory_time, C, z_test, K, c.memory_cell)
+        if got is not None:
+            p_robot, near_blind, xy, ignored, walls_done, mem, mem_t, keys, memory_done = got
+            kept = (xy, ignored) if walls_done else None
+            merged = (mem, mem_t, keys) if memory_done else None
         else:
             P = _camera_rows(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
             p_robot = _robot_band(P, cam.T_robot_camera, c.min_height, c.max_height)
@@ -435,7 +443,9 @@ class ProtectiveStop:
         points_xy, ignored = kept if kept is not None else (np.ascontiguousarray(p_robot[:, :2]), 0)
         scan = ObstacleScan(camera, float(t), points_xy, ignored, near_blind)
         self.scans[camera] = scan
-        if T_ground_robot is not None:
+        if merged is not None:
+            self._set_memory(*merged)
+        elif T_ground_robot is not None:
             self._remember(scan, camera, depth_m, K, T_ground_robot, depth_scale)
         return scan
 
@@ -499,12 +509,8 @@ class ProtectiveStop:
         """Forget what this frame sees through and what is too old; add this frame's points."""
         c = self.config
         mem, mem_t = self.memory
-        known = self._memory_keys
-        keys = known[2] if known is not None and known[0] is mem and known[1] is mem_t else None
-        T_ground_camera = T_ground_robot @ self._T_robot_camera[camera]
-        o_z = float(T_ground_camera[2, 3])
-        # The remembered points are (x, y) only: test them at mid-height of the band the camera sees.
-        z_test = o_z if c.min_height < o_z < c.max_height else float(np.clip(o_z, c.min_height, c.max_height))
+        keys = self._known_keys()
+        T_ground_camera, z_test = self._camera_view(camera, T_ground_robot)
         merged = None
         if keys is not None and scan_kernels.backend() == "numba":
             merged = scan_kernels.remember(mem, mem_t, keys, scan.t, c.memory_time, T_ground_camera, z_test, K,
@@ -513,7 +519,25 @@ class ProtectiveStop:
         if merged is None:
             merged = self._remember_numpy(scan, mem, mem_t, keys, depth_m, K, T_ground_robot, T_ground_camera, z_test,
                                           depth_scale)
-        mem, mem_t, keys = merged
+        self._set_memory(*merged)
+
+    def _known_keys(self) -> Optional[np.ndarray]:
+        """The cell keys of ``memory`` when this object wrote it last (None: it was set from outside)."""
+        mem, mem_t = self.memory
+        known = self._memory_keys
+        return known[2] if known is not None and known[0] is mem and known[1] is mem_t else None
+
+    def _camera_view(self, camera: str, T_ground_robot: np.ndarray) -> Tuple[np.ndarray, float]:
+        """The camera's pose in the ground frame, and the height its view tests remembered points at."""
+        c = self.config
+        T_ground_camera = T_ground_robot @ self._T_robot_camera[camera]
+        o_z = float(T_ground_camera[2, 3])
+        # The remembered points are (x, y) only: test them at mid-height of the band the camera sees.
+        z_test = o_z if c.min_height < o_z < c.max_height else float(np.clip(o_z, c.min_height, c.max_height))
+        return T_ground_camera, z_test
+
+    def _set_memory(self, mem: np.ndarray, mem_t: np.ndarray, keys: Optional[np.ndarray]) -> None:
+        c = self.config
         if len(mem) > c.memory_points:  # bounded: keep the newest
             mem, mem_t = mem[-c.memory_points:], mem_t[-c.memory_points:]
             keys = keys[-c.memory_points:] if keys is not None else None

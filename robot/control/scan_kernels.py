@@ -49,7 +49,10 @@ from robot.localization import fit_kernels
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher, once they compiled
 _failed = ""  # why the kernels did not compile ("": they did, or were not tried)
 _lock = threading.Lock()  # one compilation, whichever thread scans first
-_KERNELS = ("_frame_kernel", "_walls_kernel", "_remember_kernel", "_merge_kernel")
+_KERNELS = ("_scan_kernel", "_walls_kernel", "_remember_kernel", "_merge_kernel")
+# The kernels the others call: compiled into each caller (and those in _KERNELS on their own too).
+_INLINED = ("_frame_kernel", "_walls_kernel", "_remember_kernel", "_merge_kernel")
+_registered: list = []  # whether numba knows them (once per process)
 
 
 def backend() -> str:
@@ -102,7 +105,10 @@ def jit_kernels() -> Dict[str, Any]:
     for an argument type it was not built for)."""
     import numba
 
-    numba.extending.register_jitable(_merge_kernel)  # called from _remember_kernel too
+    if not _registered:  # plain Python functions here: numba compiles them where a kernel calls them
+        for name in _INLINED:
+            numba.extending.register_jitable(error_model="numpy")(globals()[name])
+        _registered.append(True)
     return jit_table(numba, globals(), _KERNELS, error_model="numpy")
 
 
@@ -115,15 +121,17 @@ def _run_each_kernel() -> None:
     K = np.array([[2.0, 0.0, 1.5], [0.0, 2.0, 1.5], [0.0, 0.0, 1.0]])
     T = np.eye(4)
     p = np.array([[0.0, 0.0, 1.0], [0.1, -0.1, 2.0]])
+    table = (np.zeros((1, 10)), np.zeros((1, 8)), np.array([0, 1], np.int64),
+             np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), np.array([0, 4], np.int64),
+             np.array([[0.0, 1.0, 0.0, 1.0]]))
     for depth, scale in ((np.full((4, 4), 1000, np.uint16), 0.001), (np.full((4, 4), 1.0, np.float32), 1.0)):
         for writeable in (True, False):  # a replayed frame may be a read-only view of its message
             depth.flags.writeable = writeable
             scan_frame(depth, 2, (2, 2), scale, 0.2, 3.0, rays, T, 0.04, 1.8, 0.6)
+            scan(depth, 2, (2, 2), scale, 0.2, 3.0, rays, T, 0.04, 1.8, 0.6, T, (0.0, 0.0), table, (0.0, 0.11, 0.11, 0.06),
+                 0.04, (p[:, :2].copy(), np.zeros(2), np.zeros(2, np.int64)), 1.0, 3.0, T, 0.5, K, 0.02)
             remember(p[:, :2].copy(), np.zeros(2), np.zeros(2, np.int64), 1.0, 3.0, T, 0.5, K, 0.2, depth, scale,
                      0.04, p[:, :2].copy(), T, 0.02)
-    table = (np.zeros((1, 10)), np.zeros((1, 8)), np.array([0, 1], np.int64),
-             np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]), np.array([0, 4], np.int64),
-             np.array([[0.0, 1.0, 0.0, 1.0]]))
     walls(p, T, (0.0, 0.0), table, 0.04, 0.0, 0.11, 0.11, 0.06)
     merge_cells(np.array([(3 << 32) + 4], np.int64), np.zeros(1), np.ones(1, np.bool_), p[:, :2].copy(), 1.0, 0.02)
 
@@ -182,8 +190,7 @@ def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, st
     of ``starts`` and ``boxes``, as ``_inside_kernel``), then ``_kept_kernel``'s test. Returns the
     obstacle points (x, y), how many a wall explained, done (False as ``_kept_kernel``'s)."""
     n = p.shape[0]
-    g = np.empty((n, 3))
-    # The transform in locals: read from G, each store to g would make the compiler read it again.
+    # The transform in locals: the compiler need not read G again after each store.
     g00, g01, g02, g03 = G[0, 0], G[0, 1], G[0, 2], G[0, 3]
     g10, g11, g12, g13 = G[1, 0], G[1, 1], G[1, 2], G[1, 3]
     g20, g21, g22, g23 = G[2, 0], G[2, 1], G[2, 2], G[2, 3]
@@ -193,9 +200,6 @@ def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, st
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
         x = px * g00 + py * g01 + pz * g02 + g03
         y = px * g10 + py * g11 + pz * g12 + g13
-        g[i, 0] = x
-        g[i, 1] = y
-        g[i, 2] = px * g20 + py * g21 + pz * g22 + g23
         if x != x:
             nan_x = True
         else:
@@ -225,8 +229,12 @@ def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, st
     kept = 0
     dropped = 0
     for i in range(n):
-        gx, gy, gz = g[i, 0], g[i, 1], g[i, 2]
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
         explained = False
+        # The ground coordinates again, as above: cheaper than storing them.
+        gx = px * g00 + py * g01 + pz * g02 + g03
+        gy = px * g10 + py * g11 + pz * g12 + g13
+        gz = px * g20 + py * g21 + pz * g22 + g23
         for jw in range(m):
             k = near[jw]
             dist = gx * planes[k, 0] + gy * planes[k, 1] + gz * planes[k, 2]
@@ -255,8 +263,8 @@ def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, st
             if explained:
                 break
         if explained:
-            dx = max(abs(p[i, 0] - offset_x) - half_x, 0.0)
-            dy = max(abs(p[i, 1]) - half_y, 0.0)
+            dx = max(abs(px - offset_x) - half_x, 0.0)
+            dy = max(abs(py) - half_y, 0.0)
             if dx == 0.0:
                 close = dy <= distance
             elif dy == 0.0:
@@ -268,10 +276,40 @@ def _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, st
             if not close:
                 dropped += 1
                 continue
-        out[kept, 0] = p[i, 0]
-        out[kept, 1] = p[i, 1]
+        out[kept, 0] = px
+        out[kept, 1] = py
         kept += 1
     return out[:kept], dropped, True
+
+
+def _scan_kernel(depth, stride, h, w, convert, scale, lo, hi, rays_x, rays_y, T, z_lo, z_hi, r0, r1, c0, c1, limit,
+                 with_walls, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, starts, boxes, tolerance, offset_x,
+                 half_x, half_y, distance, beyond,
+                 with_memory, mem, mem_t, keys, t, memory_time, C, z_test, fx, cx, fy, cy, min_range, cell_size):
+    """A frame's whole scan in one call: ``_frame_kernel``, then ``_walls_kernel`` (``with_walls``;
+    else the band points' x, y are the obstacle points), then ``_remember_kernel`` (``with_memory``),
+    their arguments in that order (the depth, its conversion and the wall tolerance shared).
+    Returns (band points, blinded, obstacle points, how many a wall explained, walls done, memory
+    points, times, keys, memory done): a part not done (declined or not asked) is left to the caller."""
+    p, blind = _frame_kernel(depth, stride, h, w, convert, scale, lo, hi, rays_x, rays_y, T, z_lo, z_hi, r0, r1, c0, c1,
+                             limit)
+    n = p.shape[0]
+    if with_walls and n:
+        xy, dropped, done = _walls_kernel(p, G, pose_x, pose_y, planes, bounds, wall_polys, vertices, starts, boxes,
+                                          tolerance, offset_x, half_x, half_y, distance, beyond)
+        if not done:
+            return p, blind, xy, 0, False, mem[:0], mem_t[:0], keys[:0], False
+    else:
+        xy = np.empty((n, 2))
+        for i in range(n):
+            xy[i, 0] = p[i, 0]
+            xy[i, 1] = p[i, 1]
+        dropped = 0
+    if not with_memory:
+        return p, blind, xy, dropped, True, mem[:0], mem_t[:0], keys[:0], False
+    mem, mem_t, keys, done = _remember_kernel(mem, mem_t, keys, t, memory_time, C, z_test, fx, cx, fy, cy, min_range,
+                                              depth, scale, convert, tolerance, xy, G, cell_size)
+    return p, blind, xy, dropped, True, mem, mem_t, keys, done
 
 
 def _merge_kernel(keys, mem_t, alive, new, t, cell_size):
@@ -435,16 +473,51 @@ def scan_frame(depth: np.ndarray, stride: int, shape: Tuple[int, int], depth_sca
     """(the sampled points in the height band, robot frame, as ``ProtectiveStop.update_scan``'s numpy
     code finds them; ``ProtectiveStop._near_blind`` with ``blind_fraction``), or None for a depth
     image the kernels do not take. ``T``: the camera's robot transform (4, 4)."""
+    got = scan(depth, stride, shape, depth_scale, min_range, max_range, rays, T, z_lo, z_hi, blind_fraction)
+    return None if got is None else (got[0], got[1])
+
+
+_NO_WALLS = (np.zeros((0, 10)), np.zeros((0, 8)), np.zeros(1, np.int64), np.zeros((0, 2)), np.zeros(1, np.int64),
+             np.zeros((0, 4)))
+_NO_MEMORY = (np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64))
+
+
+def scan(depth: np.ndarray, stride: int, shape: Tuple[int, int], depth_scale: float, min_range: float, max_range: float,
+         rays: Tuple[np.ndarray, np.ndarray], T: np.ndarray, z_lo: float, z_hi: float, blind_fraction: float,
+         G: Optional[np.ndarray] = None, pose_xy: Tuple[float, float] = (0.0, 0.0),
+         table: Optional["WallTable"] = None, footprint: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+         tolerance: float = 0.0, memory: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None, t: float = 0.0,
+         memory_time: float = 0.0, C: Optional[np.ndarray] = None, z_test: float = 0.0,
+         K: Optional[np.ndarray] = None, cell_size: float = 1.0) -> Optional[Tuple[Any, ...]]:
+    """A frame's scan in one kernel call: :func:`scan_frame`, then, at a pose (``G``, ground from
+    robot, and ``pose_xy``), :func:`walls` with ``table`` (when given) and ``footprint`` (offset x,
+    half x, half y, always distance), then :func:`remember` of ``memory`` (points, times, keys;
+    when given, with ``C``, ground from camera). None for a depth image the kernels do not take;
+    else (band points, blinded, obstacle points, walls explained, walls done, memory points,
+    times, keys, memory done), a part not done left to the caller."""
     if not _frame_type(depth):
         return None
     convert = not (depth_scale == 1.0 and depth.dtype.kind == "f")
     lo, hi = _depth_bounds(depth, convert, min_range, max_range)
     h, w = depth.shape
     r0, r1, c0, c1 = h // 4, 3 * h // 4, w // 4, 3 * w // 4
-    p, blind = _nb["_frame_kernel"](depth, stride, shape[0], shape[1], convert, np.float32(depth_scale), lo, hi,
-                                    rays[0], rays[1], T, float(z_lo), float(z_hi), r0, r1, c0, c1,
-                                    blind_fraction * ((r1 - r0) * (c1 - c0)))
-    return p, bool(blind)
+    offset_x, half_x, half_y, distance = footprint
+    mem, mem_t, keys = _NO_MEMORY if memory is None else memory
+    if K is None:
+        fx = cx = fy = cy = 0.0
+    else:
+        fx, cx, fy, cy = float(K[0, 0]), float(K[0, 2]), float(K[1, 1]), float(K[1, 2])
+    return _nb["_scan_kernel"](
+        depth, stride, shape[0], shape[1], convert, np.float32(depth_scale), lo, hi, rays[0], rays[1], T, float(z_lo),
+        float(z_hi), r0, r1, c0, c1, blind_fraction * ((r1 - r0) * (c1 - c0)),
+        G is not None and table is not None, _EYE if G is None else G, float(pose_xy[0]), float(pose_xy[1]),
+        *(_NO_WALLS if table is None else table), float(tolerance), float(offset_x), float(half_x), float(half_y),
+        float(distance), distance * (1.0 + 1e-9) + 1e-300,
+        G is not None and memory is not None, mem, mem_t, keys, float(t), float(memory_time), _EYE if C is None else C,
+        float(z_test), fx, cx, fy, cy, float(min_range), float(cell_size))
+
+
+_EYE = np.eye(4)
 
 
 # (planes (W, 10), pre-filter bounds (W, 8), each wall's first polygon (W + 1), vertices (V, 2),
