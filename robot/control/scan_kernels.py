@@ -2,14 +2,18 @@
 
 The scan (:meth:`robot.control.protective_stop.ProtectiveStop.update_scan`) runs on every depth
 frame of every camera. Its numpy code is a few dozen small calls on a few thousand points each,
-whose per-call overhead is most of their cost; here it is three compiled loops, one call each:
+whose per-call overhead is most of their cost; here it is one kernel call (:func:`scan`), three
+compiled passes:
 
 * the sampled pixels with a valid depth, back-projected into the robot frame, those in the
-  height band kept, and whether the view is blinded close up (:func:`scan_frame`);
+  height band kept, and whether the view is blinded close up (:func:`scan_frame` alone);
 * their ground coordinates, the walls' pre-filter, each near wall's plane distance and polygons
-  (the even-odd rule), and the points left as obstacles (:func:`walls`);
+  (the even-odd rule), and the points left as obstacles (:func:`walls` alone);
 * the memory: what is too old or seen through goes, the frame's points come in, one per grid
-  cell, a hash instead of a sort (:func:`remember`, its merge also :func:`merge_cells`).
+  cell, a hash instead of a sort (:func:`remember` alone, its merge :func:`merge_cells`).
+
+The walls' and the memory's parts are also kernels of their own (the caller's way on where the
+walls' part declined, and the tests' way to each); :func:`scan_frame` is the call without them.
 
 The numpy code in ``protective_stop`` stays the reference and the fallback, and the kernels give
 its results exactly, not to a rounding: the same operations on the same floats in the same order
@@ -451,6 +455,11 @@ def merge_cells(keys: np.ndarray, mem_t: np.ndarray, alive: np.ndarray, new: np.
     return (stays, pick, new_keys) if done else None
 
 
+# (planes (W, 10), pre-filter bounds (W, 8), each wall's first polygon (W + 1), vertices (V, 2),
+# each polygon's first vertex (P + 1), polygon boxes (P, 4)): ``ProtectiveStop``'s walls for the kernel.
+WallTable = Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 # (depth dtype, convert, min_range, max_range) -> the depth bounds as the kernels compare them
 _BOUNDS: Dict[Tuple[Any, bool, float, float], Tuple[Any, Any]] = {}
 
@@ -485,7 +494,7 @@ _NO_MEMORY = (np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64))
 def scan(depth: np.ndarray, stride: int, shape: Tuple[int, int], depth_scale: float, min_range: float, max_range: float,
          rays: Tuple[np.ndarray, np.ndarray], T: np.ndarray, z_lo: float, z_hi: float, blind_fraction: float,
          G: Optional[np.ndarray] = None, pose_xy: Tuple[float, float] = (0.0, 0.0),
-         table: Optional["WallTable"] = None, footprint: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
+         table: Optional[WallTable] = None, footprint: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0),
          tolerance: float = 0.0, memory: Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]] = None, t: float = 0.0,
          memory_time: float = 0.0, C: Optional[np.ndarray] = None, z_test: float = 0.0,
          K: Optional[np.ndarray] = None, cell_size: float = 1.0) -> Optional[Tuple[Any, ...]]:
@@ -518,11 +527,6 @@ def scan(depth: np.ndarray, stride: int, shape: Tuple[int, int], depth_scale: fl
 
 
 _EYE = np.eye(4)
-
-
-# (planes (W, 10), pre-filter bounds (W, 8), each wall's first polygon (W + 1), vertices (V, 2),
-# each polygon's first vertex (P + 1), polygon boxes (P, 4)): ``ProtectiveStop``'s walls for the kernel.
-WallTable = Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def walls(p: np.ndarray, G: np.ndarray, pose_xy: Tuple[float, float], table: WallTable, tolerance: float,
