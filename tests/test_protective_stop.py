@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import namedtuple
 from dataclasses import replace
@@ -175,7 +176,16 @@ def test_a_scan_from_the_raw_depth_units_is_the_scan_from_metres():
 # -- the per-frame scan, held to its plain implementation --------------------------------------
 # The scan as it was written first (robot/control/protective_stop.py at commit 88c1e98),
 # kept here as the reference the faster one must match exactly: the same obstacle points in the
-# same order, the same wall counts, blindness and memory, so the same decisions.
+# same order, the same wall counts, blindness and memory, so the same decisions. Its matrix
+# products are written out as the scan computes them (each sum left to right, no fused
+# multiply-add), since a product's own order is the BLAS's of the machine; ``_BlasStop`` keeps
+# numpy's products, and the scan matches it to rounding with the same decisions.
+
+
+def _plain_product(p, M):
+    """``p @ M.T``, each sum left to right."""
+    return np.stack([functools.reduce(np.add, [p[:, i] * M[j, i] for i in range(p.shape[1])])
+                     for j in range(M.shape[0])], axis=1)
 
 _PlainWall = namedtuple("_PlainWall", "n d R_plane polygons_2d lo hi")
 
@@ -215,7 +225,8 @@ def _plain_metres(depth, depth_scale):
     return depth.astype(np.float32) * np.float32(depth_scale)
 
 
-def _plain_depth_points_robot(depth_m, K, T_robot_camera, stride, min_range, max_range, depth_scale=1.0):
+def _plain_depth_points_robot(depth_m, K, T_robot_camera, stride, min_range, max_range, depth_scale=1.0,
+                              product=_plain_product):
     z = _plain_metres(depth_m[::stride, ::stride], depth_scale)
     h, w = z.shape
     v, u = np.mgrid[0:h, 0:w]
@@ -226,11 +237,13 @@ def _plain_depth_points_robot(depth_m, K, T_robot_camera, stride, min_range, max
     x_c = (u[ok] - K[0, 2]) / K[0, 0] * z
     y_c = (v[ok] - K[1, 2]) / K[1, 1] * z
     p_camera = np.stack([x_c, y_c, z], axis=1)
-    return p_camera @ T_robot_camera[:3, :3].T + T_robot_camera[:3, 3]
+    return product(p_camera, T_robot_camera[:3, :3]) + T_robot_camera[:3, 3]
 
 
 class _PlainStop(ProtectiveStop):
     """The protective stop with the plain per-frame scan; the per-tick ``limit`` is the same code."""
+
+    product = staticmethod(_plain_product)
 
     def __post_init__(self):
         super().__post_init__()
@@ -241,7 +254,7 @@ class _PlainStop(ProtectiveStop):
         cam = self.robot.camera(camera)
         stride = max(1, int(round(c.stride * depth_m.shape[1] / float(cam.width))))
         p_robot = _plain_depth_points_robot(depth_m, K, cam.T_robot_camera, stride, self.robot.localizer.min_range,
-                                            c.max_range, depth_scale)
+                                            c.max_range, depth_scale, self.product)
         band = (p_robot[:, 2] >= c.min_height) & (p_robot[:, 2] <= c.max_height)
         p_robot = p_robot[band]
         ignored = 0
@@ -275,7 +288,7 @@ class _PlainStop(ProtectiveStop):
             R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
             z_test = float(np.clip(o[2], c.min_height, c.max_height))
             p_ground = np.column_stack([mem, np.full(len(mem), z_test)])
-            p_cam = (p_ground - o) @ R
+            p_cam = self.product(p_ground - o, R.T)
             z = p_cam[:, 2]
             h, w = depth_m.shape
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -290,7 +303,7 @@ class _PlainStop(ProtectiveStop):
             mem, mem_t = mem[~seen_through], mem_t[~seen_through]
         if len(scan.points_xy):
             T = pose_to_T_ground_robot(*pose)
-            new = scan.points_xy @ T[:2, :2].T + T[:2, 3]
+            new = self.product(scan.points_xy, T[:2, :2]) + T[:2, 3]
             mem = np.vstack([mem, new])
             mem_t = np.concatenate([mem_t, np.full(len(new), scan.t)])
         if len(mem):
@@ -301,7 +314,7 @@ class _PlainStop(ProtectiveStop):
 
     def _plain_explained_by_walls(self, p_robot, pose):
         T = pose_to_T_ground_robot(*pose)
-        p_ground = p_robot @ T[:3, :3].T + T[:3, 3]
+        p_ground = self.product(p_robot, T[:3, :3]) + T[:3, 3]
         tol = self.config.wall_tolerance
         explained = np.zeros(len(p_ground), dtype=bool)
         reach = self.config.max_range + tol
@@ -309,14 +322,14 @@ class _PlainStop(ProtectiveStop):
         for w in self._plain_walls:
             if np.any(xy < w.lo - reach) or np.any(xy > w.hi + reach):
                 continue
-            dist = p_ground @ w.n + w.d
+            dist = self.product(p_ground, w.n[None, :])[:, 0] + w.d
             close = np.abs(dist) < tol
             if not close.any():
                 continue
             idx = np.nonzero(close & ~explained)[0]
             if len(idx) == 0:
                 continue
-            q = p_ground[idx] @ w.R_plane.T
+            q = self.product(p_ground[idx], w.R_plane)
             inside = np.zeros(len(idx), dtype=bool)
             for poly in w.polygons_2d:
                 inside |= _plain_inside_polygon(q, poly)
@@ -454,10 +467,11 @@ def test_a_blinded_view_and_a_memory_set_from_outside_are_the_plain_ones(scan_ba
     assert fast.limit(1.25, (0.3, 0.0, 0.0), pose) == plain.limit(1.25, (0.3, 0.0, 0.0), pose)
 
 
-def test_the_view_blindness_count_is_the_plain_one_around_its_limit():
+def test_the_view_blindness_count_is_the_plain_one_around_its_limit(scan_backend):
     """The blindness count stops early once the rest of the view cannot change it: the same answer
     as counting all of it, for raw units and metres, just below, at and above the limit."""
     stop = ProtectiveStop(SafetyConfig(), ROBOT, ARENA)
+    rays = ps._pixel_rays((60, 106), np.array([[400.0, 0.0, 424.0], [0.0, 400.0, 240.0], [0.0, 0.0, 1.0]]), 8)
     rng = np.random.default_rng(3)
     h, w = 480, 848
     size = (h // 2) * (w // 2)
@@ -477,6 +491,10 @@ def test_the_view_blindness_count_is_the_plain_one_around_its_limit():
                 plain_bad = np.count_nonzero(c <= 0) if image.dtype.kind in "ui" else \
                     np.count_nonzero(~np.isfinite(c) | (c <= 0.0))
                 assert stop._near_blind(image) == bool(plain_bad > limit), (bad, layout, image.dtype)
+                if scan_backend == "numba":
+                    got = scan_kernels.scan_frame(image, 8, (60, 106), 0.001 if image.dtype.kind == "u" else 1.0, 0.2,
+                                                  3.0, rays, np.eye(4), 0.04, 1.8, SafetyConfig().near_blind_fraction)
+                    assert got is not None and got[1] == bool(plain_bad > limit), (bad, layout, image.dtype)
 
 
 def test_the_polygon_tests_are_the_plain_even_odd_rule(scan_backend):
@@ -495,12 +513,34 @@ def test_the_polygon_tests_are_the_plain_even_odd_rule(scan_backend):
         for poly in w.polygons_2d:
             plain |= _plain_inside_polygon(q, poly)
         assert 0 < np.count_nonzero(plain) < len(q)
+        assert np.array_equal(ps._inside_polygons(q[:, 0], q[:, 1], w), plain)
         if scan_backend == "numba":
-            explained = np.zeros(len(q) + 3, dtype=bool)
-            scan_kernels.mark_inside(q, w.flat, np.arange(len(q), dtype=np.int64) + 3, explained)
-            assert not explained[:3].any() and np.array_equal(explained[3:], plain)
-        else:
-            assert np.array_equal(ps._inside_polygons(q, w), plain)
+            # The kernel tests the walls on points in the robot frame: these points on the wall's
+            # plane, from a pose beside it, tested against the in-plane coordinates it finds.
+            g = q @ w.R_plane - w.d * w.n
+            away = w.n[:2] / np.linalg.norm(w.n[:2])  # the robot 0.6 m off the wall: no point near it
+            pose = (float(g[:, 0].mean() + 0.6 * away[0]), float(g[:, 1].mean() + 0.6 * away[1]), 0.3)
+            G = pose_to_T_ground_robot(*pose)
+            p = np.ascontiguousarray((g - G[:3, 3]) @ G[:3, :3])
+            g = _plain_product(p, G[:3, :3]) + G[:3, 3]
+            inside = np.zeros(len(q), dtype=bool)
+            for poly in w.polygons_2d:
+                inside |= _plain_inside_polygon(_plain_product(g, w.R_plane), poly)
+            want = inside & (np.abs(_plain_product(g, w.n[None, :])[:, 0] + w.d) < stop.config.wall_tolerance)
+            assert 0 < np.count_nonzero(want) < len(q)
+            k = [id(v) for v in stop._walls].index(id(w))
+            got = scan_kernels.walls(p, G, pose[:2], _one_wall_table(stop, k), stop.config.wall_tolerance, 0.0, 0.11,
+                                     0.11, 0.06)
+            assert got is not None and got[1] == np.count_nonzero(want)
+            assert _same(got[0], np.ascontiguousarray(p[~want, :2]))
+
+
+def _one_wall_table(stop, k):
+    """The compiled scan's table of the walls, of wall ``k`` alone."""
+    planes, bounds, wall_polys, vertices, starts, boxes = stop._wall_table
+    a, b = wall_polys[k], wall_polys[k + 1]
+    return (planes[k:k + 1].copy(), bounds[k:k + 1].copy(), np.array([0, b - a], np.int64),
+            vertices[starts[a]:starts[b]].copy(), starts[a:b + 1] - starts[a], boxes[a:b].copy())
 
 
 def test_the_memory_merge_keeps_the_newest_point_per_cell_as_the_plain_sort(scan_backend):
@@ -538,14 +578,31 @@ def test_the_kernels_leave_to_numpy_what_its_conversions_decide(scan_backend):
     keys = np.array([(3 << 32) + 4], np.int64)
     for bad in ([np.nan, 0.0], [1e300, 0.0], [0.0, -1e12]):
         assert scan_kernels.merge_cells(keys, np.zeros(1), np.ones(1, bool), np.array([[0.1, 0.1], bad]), 1.0, 0.02) is None
+    # The memory: a camera at the origin looking along ground +x (its optical z), the frame 2 m deep.
     K = np.array([[400.0, 0.0, 50.0], [0.0, 400.0, 40.0], [0.0, 0.0, 1.0]])
     depth = np.full((80, 100), 2000, np.uint16)
-    assert scan_kernels.seen_through(np.array([[np.nan, 0.0, 1.0]]), K, 0.2, depth, 0.001, 0.04) is None
-    seen = scan_kernels.seen_through(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 3.0], [1e9, 0.0, 1.0], [0.0, 0.0, -1.0]]),
-                                     K, 0.2, depth, 0.001, 0.04)
-    assert seen.tolist() == [True, False, False, False]
-    p = np.array([[0.11 + 0.03, 0.11 + 0.03, 0.5]])
-    assert scan_kernels.kept_points(p, np.ones(1, bool), 0.0, 0.11, 0.11, 0.06) is None
+    C = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.5], [0.0, 0.0, 0.0, 1.0]])
+    mem = np.array([[1.0, 0.0], [3.0, 0.0], [1.0, -1e9], [-1.0, 0.0]])  # seen through, behind, out of view, behind the lens
+    keys = ps._cell_keys(mem, 0.02)
+
+    def remember(mem, xy, K=K):
+        return scan_kernels.remember(mem, np.ones(len(mem)), keys[:len(mem)], 1.0, 3.0, C, 0.5, K, 0.2, depth, 0.001,
+                                     0.04, xy, np.eye(4), 0.02)
+    got = remember(mem, np.zeros((0, 2)))
+    assert got is not None and _same(got[0], mem[1:]) and _same(got[2], keys[1:])
+    for bad in ([np.nan, 0.0], [1e300, 0.0], [0.0, -1e12]):
+        assert remember(mem, np.array([[0.1, 0.1], bad])) is None
+    assert remember(mem, np.zeros((0, 2)), np.diag([np.nan, 400.0, 1.0])) is None  # a NaN pixel column
+    # A wall along ground x = 0.14 that explains a point off a corner of the footprint, within
+    # always_distance of it: hypot decides whether it is kept.
+    table = (np.array([[1.0, 0.0, 0.0, -0.14, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]]), np.full((1, 8), -np.inf),
+             np.array([0, 1], np.int64), np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 2.0], [-1.0, 2.0]]),
+             np.array([0, 4], np.int64), np.array([[-1.0, 1.0, -1.0, 2.0]]))
+    assert scan_kernels.walls(np.array([[0.14, 0.14, 0.5]]), np.eye(4), (0.0, 0.0), table, 0.04, 0.0, 0.11, 0.11,
+                              0.06) is None
+    got = scan_kernels.walls(np.array([[0.14, 0.5, 0.5], [0.14, 0.14, 2.5], [0.5, 0.5, 0.5]]), np.eye(4), (0.0, 0.0),
+                             table, 0.04, 0.0, 0.11, 0.11, 0.06)
+    assert got is not None and got[1] == 1 and got[0].tolist() == [[0.14, 0.14], [0.5, 0.5]]
 
 
 def test_the_depth_validity_bounds_compare_as_numpy_does(scan_backend):
@@ -561,8 +618,10 @@ def test_the_depth_validity_bounds_compare_as_numpy_does(scan_backend):
     rays = ps._pixel_rays((6, 8), np.array([[8.0, 0.0, 7.5], [0.0, 8.0, 5.5], [0.0, 0.0, 1.0]]), 2)
     for depth, scale in ((metres, 1.0), (raw, 0.001), (small, 1.0), (metres.astype(np.float64), 1.0), (metres, 0.5)):
         want = ps._camera_points(ps._metres(depth[::2, ::2], scale), rays, lo, hi)
-        got = scan_kernels.camera_points(depth, 2, (6, 8), scale, lo, hi, rays) if scan_backend == "numba" else want
-        assert got is not None and _same(np.ascontiguousarray(got), want) and 0 < len(want) < 48, (depth.dtype, scale)
+        assert 0 < len(want) < 48
+        if scan_backend == "numba":  # the kernel's points, in a robot frame that is the camera's
+            got = scan_kernels.scan_frame(depth, 2, (6, 8), scale, lo, hi, rays, np.eye(4), -np.inf, np.inf, 0.6)
+            assert got is not None and _same(got[0], want), (depth.dtype, scale)
 
 
 def test_the_scan_backend_follows_robot_kernels(monkeypatch):
@@ -596,8 +655,90 @@ def test_the_scan_with_every_kernel_declining_is_the_plain_scan(scan_backend, mo
     """Where a kernel declines (numpy's conversions decide), the scan goes on in numpy: the same."""
     if scan_backend != "numba":
         pytest.skip("the numpy scan has no kernels to decline")
-    for name in ("camera_points", "kept_points", "seen_through", "merge_cells"):
+    for name in ("scan_frame", "walls", "remember"):
         monkeypatch.setattr(scan_kernels, name, lambda *args, **kwargs: None)
     frames = _frame_sequence(ARENA, (0.3, 0.5, 0.2), ARENA_CLUTTER, 3, 0.03, 0.08, seed=4)
     seen = _assert_scans_match_the_plain_ones(frames, ARENA, SafetyConfig(), no_pose_every=4)
     assert seen["points"] > 500 and seen["ignored"] > 500, seen
+
+
+def test_the_wall_and_memory_kernels_are_the_numpy_code_on_random_inputs(scan_backend):
+    """Random points at random poses in the building (on and off its walls, some beside the
+    footprint) and random memories seen by random frames: the kernels' results are the numpy
+    code's, exactly, wherever they do not decline."""
+    if scan_backend != "numba":
+        pytest.skip("the numpy code is the reference here")
+    stop = ProtectiveStop(SafetyConfig(), ROBOT, BIG_ROOM)
+    c = stop.config
+    rng = np.random.default_rng(17)
+    compared = {"walls": 0, "explained": 0, "remember": 0, "seen": 0}
+    for trial in range(60):
+        w = stop._walls[int(rng.integers(len(stop._walls)))]
+        q = rng.uniform(np.vstack(w.polygons_2d).min(axis=0) - 0.3, np.vstack(w.polygons_2d).max(axis=0) + 0.3, (400, 2))
+        g = q @ w.R_plane - w.d * w.n + np.outer(rng.normal(0.0, 0.03, len(q)), w.n)
+        pose = (float(g[0, 0] + rng.normal(0.0, 1.0)), float(g[0, 1] + rng.normal(0.0, 1.0)), float(rng.uniform(-4, 4)))
+        G = pose_to_T_ground_robot(*pose)
+        p = np.vstack([(g - G[:3, 3]) @ G[:3, :3],
+                       np.column_stack([rng.uniform(-3.0, 3.0, (300, 2)), rng.uniform(0.04, 1.8, 300)])])
+        if trial % 3 == 0:  # points beside the footprint: on the axes or off a corner
+            p = np.vstack([p, [[0.11 + 0.05, 0.0, 0.5], [0.0, -0.11 - 0.07, 0.5], [0.2, 0.2, 0.5]]])
+        got = scan_kernels.walls(p, G, pose[:2], stop._wall_table, c.wall_tolerance, c.footprint_offset_x,
+                                 stop._half_x, stop._half_y, c.always_distance)
+        want = stop._kept_points(p, stop._explained_by_walls(p, pose, G))
+        if got is not None:
+            assert _same(got[0], want[0]) and got[1] == want[1], trial
+            compared["walls"] += 1
+            compared["explained"] += got[1]
+
+        n_mem = int(rng.integers(0, 500))
+        mem, mem_t = _plain_one_per_cell(rng.uniform(-2.0, 2.0, (n_mem, 2)) + pose[:2],
+                                         rng.choice([0.5, 1.0, 2.0, 3.9], n_mem), c.memory_cell)
+        keys = ps._cell_keys(mem, c.memory_cell)
+        cam = ROBOT.cameras[trial % len(ROBOT.cameras)]
+        K = cam.intrinsics_from_fov()
+        depth = rng.choice([0, 300, 800, 1500, 2500, 4000], (cam.height, cam.width)).astype(np.uint16)
+        scan = ps.ObstacleScan(cam.name, 4.0, np.ascontiguousarray(want[0][:int(rng.integers(0, 200))]))
+        C = G @ stop._T_robot_camera[cam.name]
+        z_test = float(np.clip(C[2, 3], c.min_height, c.max_height))
+        got = scan_kernels.remember(mem, mem_t, keys, scan.t, c.memory_time, C, z_test, K, ROBOT.localizer.min_range,
+                                    depth, 0.001, c.wall_tolerance, scan.points_xy, G, c.memory_cell)
+        want = stop._remember_numpy(scan, mem, mem_t, keys, depth, K, G, C, z_test, 0.001)
+        assert got is not None, trial
+        assert all(_same(a, b) for a, b in zip(got, want)), trial
+        compared["remember"] += 1
+        compared["seen"] += n_mem - int(np.count_nonzero(np.isin(keys, got[2])))
+    assert compared["walls"] > 40 and compared["explained"] > 1000 and compared["seen"] > 100, compared
+
+
+class _BlasStop(_PlainStop):
+    """The plain scan with numpy's matrix products (the machine's BLAS), as the scan computed them
+    before its products were written out."""
+
+    product = staticmethod(lambda p, M: p @ M.T)
+
+
+@pytest.mark.parametrize("plane_map, pose0", [(ARENA, (0.3, 0.5, 0.2)), (BIG_ROOM, INSTITUTE_POSES[0])],
+                         ids=["arena", "building"])
+def test_the_written_out_products_differ_from_blas_by_rounding_only(plane_map, pose0):
+    """The order of a sum moves its result by an ulp or so: the same points within 1e-12 m, the same
+    wall counts and memory sizes, and the same decisions on rendered frames with clutter."""
+    c, s = math.cos(pose0[2]), math.sin(pose0[2])
+    clutter = [Box(pose0[0] + 0.9 * c, pose0[1] + 0.9 * s, 0.3, 0.5, 1.75, pose0[2]),
+               Box(pose0[0] + 0.6 * c - 0.3 * s, pose0[1] + 0.6 * s + 0.3 * c, 0.2, 0.2, 0.5, 0.4)]
+    frames = _frame_sequence(plane_map, pose0, clutter, 5, 0.04, 0.06, seed=5)
+    fast, blas = ProtectiveStop(SafetyConfig(), ROBOT, plane_map), _BlasStop(SafetyConfig(), ROBOT, plane_map)
+    differ = 0
+    for f in frames:
+        pose = (f.truth[0] + 0.004, f.truth[1] - 0.003, f.truth[2] + 0.002)
+        a, b = fast.update_scan_frame(f, pose), blas.update_scan_frame(f, pose)
+        assert (a.walls_ignored, a.near_blind, a.points_xy.shape) == (b.walls_ignored, b.near_blind, b.points_xy.shape)
+        assert np.allclose(a.points_xy, b.points_xy, rtol=0.0, atol=1e-12)
+        differ += int(np.count_nonzero(fast.memory[0] != blas.memory[0]))
+        assert fast.memory[0].shape == blas.memory[0].shape and np.array_equal(fast.memory[1], blas.memory[1])
+        assert np.allclose(fast.memory[0], blas.memory[0], rtol=0.0, atol=1e-12)
+        for twist in TWISTS:
+            x, y = fast.limit(f.t_capture + 0.01, twist, pose), blas.limit(f.t_capture + 0.01, twist, pose)
+            assert (x.zone, x.reason) == (y.zone, y.reason), twist
+            assert np.allclose(x.twist, y.twist, rtol=1e-9, atol=0.0)
+            assert x.free_distance == y.free_distance or abs(x.free_distance - y.free_distance) < 1e-12
+    assert differ > 0  # this machine's BLAS does round otherwise (fused multiply-adds)

@@ -151,8 +151,8 @@ def _inside_prepared(x: np.ndarray, y: np.ndarray, poly: _Polygon) -> np.ndarray
     return inside
 
 
-def _inside_polygons(q: np.ndarray, wall: _Wall) -> np.ndarray:
-    """Whether each point (in-plane axes) is in any of the wall's polygons (:func:`_inside_prepared`),
+def _inside_polygons(qx: np.ndarray, qy: np.ndarray, wall: _Wall) -> np.ndarray:
+    """Whether each point (in-plane axes ``qx``, ``qy``) is in any of the wall's polygons (:func:`_inside_prepared`),
     each polygon tested only on the points in its bounding box.
 
     That cull is exact. Below or above the polygon (y outside [y_lo, y_hi]) no edge crosses the
@@ -160,11 +160,10 @@ def _inside_polygons(q: np.ndarray, wall: _Wall) -> np.ndarray:
     closed polygon crosses any row an even number of times; right of it none is. Crossings are
     interpolated between their edge's end points to within about 1e-15 of the coordinates, far
     inside the boxes' margin in x."""
-    qx, qy = q[:, 0], q[:, 1]
     with np.errstate(divide="ignore", invalid="ignore"):
         if len(wall.polygons) == 1:  # the box tests would cost as much as the polygon's
             return _inside_prepared(qx, qy, wall.polygons[0])
-        inside = np.zeros(len(q), dtype=bool)
+        inside = np.zeros(len(qx), dtype=bool)
         x_lo, x_hi, y_lo, y_hi = float(qx.min()), float(qx.max()), float(qy.min()), float(qy.max())
         for poly in wall.polygons:
             bx0, bx1, by0, by1 = poly.box
@@ -185,9 +184,26 @@ def depth_points_robot(depth_m: np.ndarray, K: np.ndarray, T_robot_camera: np.nd
     may be the camera's raw units with ``depth_scale`` metres each: only the sampled pixels are
     converted (as ``DepthFrame.depth_m`` would, in float32)."""
     z = _metres(depth_m[::stride, ::stride], depth_scale)
-    p_robot = _camera_points(z, _pixel_rays(z.shape, K, stride), min_range, max_range) @ T_robot_camera[:3, :3].T
+    p_robot = _rotated(_camera_points(z, _pixel_rays(z.shape, K, stride), min_range, max_range), T_robot_camera[:3, :3])
     _add_columns(p_robot, T_robot_camera[:3, 3])
     return p_robot
+
+
+def _rotated(p: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``p @ R.T`` for (N, k) ``p``, summed as :func:`_product` sums."""
+    return _product(p.T, R).T
+
+
+def _product(P: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``R @ P`` for points as the columns of ``P`` (k, N), each sum written out left to right,
+    ``(R_j0 P_0 + R_j1 P_1) + ...``: every coordinate change of the scan, rather than a matrix
+    product, whose order of operations is its BLAS's (fused multiply-adds on one machine, pairs
+    summed on another). The compiled kernels compute the same sums in the same order, on every
+    platform. (m, N); a row at a time, each a contiguous pass."""
+    out = P[0] * R[:, 0:1]
+    for i in range(1, P.shape[0]):
+        out += P[i] * R[:, i:i + 1]
+    return out
 
 
 def _pixel_rays(shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.ndarray, np.ndarray]:
@@ -205,19 +221,33 @@ def _pixel_rays(shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.
 
 def _camera_points(z: np.ndarray, rays: Tuple[np.ndarray, np.ndarray], min_range: float, max_range: float) -> np.ndarray:
     """The sampled pixels with a valid depth ``z`` (m), in camera coordinates (N, 3), row by row."""
+    return _camera_rows(z, rays, min_range, max_range).T
+
+
+def _camera_rows(z: np.ndarray, rays: Tuple[np.ndarray, np.ndarray], min_range: float, max_range: float) -> np.ndarray:
+    """:func:`_camera_points` as (3, N): x, y and z each a contiguous row."""
     ok = np.isfinite(z) & (z > min_range) & (z < max_range)
-    z = z[ok].astype(float)
-    p_camera = np.empty((len(z), 3))
-    np.multiply(rays[0][ok], z, out=p_camera[:, 0])
-    np.multiply(rays[1][ok], z, out=p_camera[:, 1])
-    p_camera[:, 2] = z
-    return p_camera
+    idx = ok.ravel().nonzero()[0]
+    out = np.empty((3, len(idx)))
+    out[2] = z.ravel().take(idx)
+    np.multiply(rays[0].ravel().take(idx), out[2], out=out[0])
+    np.multiply(rays[1].ravel().take(idx), out[2], out=out[1])
+    return out
 
 
-def _in_band(p: np.ndarray, t: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """The rows of ``p + t`` whose z is within [lo, hi] (``p`` is changed)."""
-    _add_columns(p, t)
-    return _rows(p, (p[:, 2] >= lo) & (p[:, 2] <= hi))
+def _robot_band(P: np.ndarray, T: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """The camera points (the columns of ``P``, (3, N)) in the robot frame (``T``, robot from
+    camera) whose height is within [lo, hi], (N, 3): the height first, the rest for those only."""
+    pz = _product(P, T[2:3, :3])[0]
+    pz += T[2, 3]
+    keep = ((pz >= lo) & (pz <= hi)).nonzero()[0]
+    if len(keep) < len(pz):
+        P, pz = P.take(keep, axis=1), pz.take(keep)
+    out = np.empty((3, len(pz)))
+    out[:2] = _product(P, T[:2, :3])
+    out[:2] += T[:2, 3:4]
+    out[2] = pz
+    return out.T
 
 
 def _add_columns(p: np.ndarray, t: np.ndarray) -> None:
@@ -342,6 +372,19 @@ class ProtectiveStop:
         margin = np.array([c.wall_tolerance + w.off_plane + 1e-6 + _ROUNDING * float(np.abs(np.r_[w.lo, w.hi]).max())
                            for w in self._walls]).reshape(-1, 1)
         self._wall_bounds = np.hstack([lo - reach, -(hi + reach), lo - margin, -(hi + margin)])
+        # The walls for the compiled scan: planes (n, d, in-plane axes), the pre-filter, polygons.
+        flats = [w.flat for w in self._walls]
+        self._wall_table: scan_kernels.WallTable = (
+            np.array([np.r_[w.n, w.d, w.R_plane.ravel()] for w in self._walls]).reshape(-1, 10),
+            np.ascontiguousarray(self._wall_bounds),
+            np.cumsum([0] + [len(f[1]) - 1 for f in flats]).astype(np.int64),
+            np.ascontiguousarray(np.vstack([f[0] for f in flats]) if flats else np.zeros((0, 2))),
+            np.cumsum([0] + [n for f in flats for n in np.diff(f[1]).tolist()]).astype(np.int64),
+            np.ascontiguousarray(np.vstack([f[2] for f in flats]) if flats else np.zeros((0, 4))))
+        # The cameras' mounts as the kernels take them (float64, C order, writable like every frame's).
+        self._T_robot_camera = {cam.name: np.array(cam.T_robot_camera, dtype=np.float64, order="C")
+                                for cam in self.robot.cameras}
+        self._footprint = (c.footprint_offset_x, self._half_x, self._half_y, c.always_distance)
         # (shape, stride, K) -> the sampled pixels' rays: built once per camera stream.
         self._rays: Dict[tuple, Tuple[np.ndarray, np.ndarray]] = {}
         # (memory points, their times, their cell keys): the keys of the memory this object wrote
@@ -371,45 +414,59 @@ class ProtectiveStop:
         shape = (-(-depth_m.shape[0] // stride), -(-depth_m.shape[1] // stride))  # of depth_m[::stride, ::stride]
         rays = self._pixel_rays(shape, K, stride)
         min_range = self.robot.localizer.min_range
-        p_camera = None
-        if compiled:
-            p_camera = scan_kernels.camera_points(depth_m, stride, shape, depth_scale, min_range, c.max_range, rays)
-        if p_camera is None:
-            p_camera = _camera_points(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
-        p_robot = p_camera @ cam.T_robot_camera[:3, :3].T
-        band = scan_kernels.in_band if compiled else _in_band
-        p_robot = band(p_robot, cam.T_robot_camera[:3, 3], c.min_height, c.max_height)
-        points_xy, ignored = None, 0
         T_ground_robot = pose_to_T_ground_robot(*pose) if pose is not None else None
-        if T_ground_robot is not None and self._walls and len(p_robot):
-            explained = self._explained_by_walls(p_robot, pose, T_ground_robot, compiled)
-            kept = None
-            if compiled:
-                kept = scan_kernels.kept_points(p_robot, explained, c.footprint_offset_x, self._half_x, self._half_y,
-                                                c.always_distance)
-            points_xy, ignored = kept if kept is not None else self._kept_points(p_robot, explained)
-        if points_xy is None:
-            points_xy = np.ascontiguousarray(p_robot[:, :2])
-        near_blind = self._near_blind(depth_m)
+        with_walls = T_ground_robot is not None and bool(self._walls)
+        kept = got = merged = None
+        if compiled:
+            # The frame's points, its view blindness, the walls and the memory in one kernel call.
+            memory, C, z_test = None, None, 0.0
+            if T_ground_robot is not None:
+                keys = self._known_keys()
+                if keys is not None:
+                    memory = (*self.memory, keys)
+                    C, z_test = self._camera_view(camera, T_ground_robot)
+            got = scan_kernels.scan(depth_m, stride, shape, depth_scale, min_range, c.max_range, rays,
+                                    self._T_robot_camera[camera], c.min_height, c.max_height, c.near_blind_fraction,
+                                    T_ground_robot, pose[:2] if pose is not None else (0.0, 0.0),
+                                    self._wall_table if with_walls else None, self._footprint, c.wall_tolerance,
+                                    memory, float(t), c.memory_time, C, z_test, K, c.memory_cell)
+        if got is not None:
+            p_robot, near_blind, xy, ignored, walls_done, mem, mem_t, keys, memory_done = got
+            kept = (xy, ignored) if walls_done else None
+            merged = (mem, mem_t, keys) if memory_done else None
+        else:
+            P = _camera_rows(_metres(depth_m[::stride, ::stride], depth_scale), rays, min_range, c.max_range)
+            p_robot = _robot_band(P, cam.T_robot_camera, c.min_height, c.max_height)
+            near_blind = self._near_blind(depth_m)
+        if kept is None and with_walls and len(p_robot):
+            kept = self._kept_points(p_robot, self._explained_by_walls(p_robot, pose, T_ground_robot))
+        points_xy, ignored = kept if kept is not None else (np.ascontiguousarray(p_robot[:, :2]), 0)
         scan = ObstacleScan(camera, float(t), points_xy, ignored, near_blind)
         self.scans[camera] = scan
-        if T_ground_robot is not None:
+        if merged is not None:
+            self._set_memory(*merged)
+        elif T_ground_robot is not None:
             self._remember(scan, camera, depth_m, K, T_ground_robot, depth_scale)
         return scan
 
     def _kept_points(self, p_robot: np.ndarray, explained: np.ndarray) -> Tuple[np.ndarray, int]:
         """(x, y) of the points no wall explains or near the footprint, and how many were dropped."""
+        x, y = p_robot[:, 0], p_robot[:, 1]
         wall = explained.nonzero()[0]
         ignored = 0
         if len(wall):
             # Only an explained point can be kept for being near: test just those.
-            drop = wall[~self._near_footprint(p_robot.take(wall, axis=0), self.config.always_distance)]
+            drop = wall[~self._near_footprint_xy(x.take(wall), y.take(wall), self.config.always_distance)]
             ignored = len(drop)
             if ignored:
-                keep = np.ones(len(p_robot), dtype=bool)
+                keep = np.ones(len(x), dtype=bool)
                 keep[drop] = False
-                p_robot = _rows(p_robot, keep)
-        return np.ascontiguousarray(p_robot[:, :2]), ignored
+                idx = keep.nonzero()[0]
+                x, y = x.take(idx), y.take(idx)
+        out = np.empty((len(x), 2))
+        out[:, 0] = x
+        out[:, 1] = y
+        return out, ignored
 
     def _pixel_rays(self, shape: Tuple[int, int], K: np.ndarray, stride: int) -> Tuple[np.ndarray, np.ndarray]:
         K = np.asarray(K)
@@ -451,75 +508,88 @@ class ProtectiveStop:
                   T_ground_robot: np.ndarray, depth_scale: float = 1.0) -> None:
         """Forget what this frame sees through and what is too old; add this frame's points."""
         c = self.config
-        compiled = scan_kernels.backend() == "numba"
+        mem, mem_t = self.memory
+        keys = self._known_keys()
+        T_ground_camera, z_test = self._camera_view(camera, T_ground_robot)
+        merged = None
+        if keys is not None and scan_kernels.backend() == "numba":
+            merged = scan_kernels.remember(mem, mem_t, keys, scan.t, c.memory_time, T_ground_camera, z_test, K,
+                                           self.robot.localizer.min_range, depth_m, depth_scale, c.wall_tolerance,
+                                           scan.points_xy, T_ground_robot, c.memory_cell)
+        if merged is None:
+            merged = self._remember_numpy(scan, mem, mem_t, keys, depth_m, K, T_ground_robot, T_ground_camera, z_test,
+                                          depth_scale)
+        self._set_memory(*merged)
+
+    def _known_keys(self) -> Optional[np.ndarray]:
+        """The cell keys of ``memory`` when this object wrote it last (None: it was set from outside)."""
         mem, mem_t = self.memory
         known = self._memory_keys
-        keys = known[2] if known is not None and known[0] is mem and known[1] is mem_t else None
-        keep = (scan.t - mem_t) <= c.memory_time
-        if not keep.all():
-            mem, mem_t, keys = _compact(mem, mem_t, keys, keep)
-        alive = None  # the remembered points this frame does not see through (None: all)
-        if len(mem):
-            cam = self.robot.camera(camera)
-            T_ground_camera = T_ground_robot @ cam.T_robot_camera
-            R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
-            # The remembered points are (x, y) only: test them at mid-height of the band the camera sees.
-            z_test = float(o[2]) if c.min_height < o[2] < c.max_height else float(np.clip(o[2], c.min_height,
-                                                                                           c.max_height))
-            p_ground_o = np.empty((len(mem), 3))  # the points less the camera position
-            np.subtract(mem, o[:2], out=p_ground_o[:, :2])
-            p_ground_o[:, 2] = z_test - o[2]
-            p_cam = p_ground_o @ R
-            seen = None
-            if compiled:
-                seen = scan_kernels.seen_through(p_cam, K, self.robot.localizer.min_range, depth_m, depth_scale,
-                                                 c.wall_tolerance)
-            if seen is None:
-                seen = self._seen_through(p_cam, K, depth_m, depth_scale)
-            if seen.any():
-                alive = ~seen
-        if len(scan.points_xy):
-            new = scan.points_xy @ T_ground_robot[:2, :2].T
-            _add_columns(new, T_ground_robot[:2, 3])
-            merged = None
-            if keys is not None and compiled:
-                merged = scan_kernels.merge_cells(keys, mem_t, np.ones(len(mem), dtype=bool) if alive is None else alive,
-                                                  new, scan.t, c.memory_cell)
-            if merged is not None:
-                stays, pick, new_keys = merged
-                mem, mem_t, keys = _compact(mem, mem_t, keys, stays)
-                mem = np.concatenate([mem, new.take(pick, axis=0)])
-                mem_t = np.concatenate([mem_t, np.full(len(pick), scan.t)])
-                keys = np.concatenate([keys, new_keys])
-            else:
-                if alive is not None:
-                    mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
-                if keys is not None:
-                    mem, mem_t, keys = self._add_to_cells(mem, mem_t, keys, new, scan.t)
-                else:
-                    mem, mem_t, keys = self._one_per_cell(np.vstack([mem, new]),
-                                                          np.concatenate([mem_t, np.full(len(new), scan.t)]))
-        else:
-            if alive is not None:
-                mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
-            if keys is None and len(mem):
-                mem, mem_t, keys = self._one_per_cell(mem, mem_t)
+        return known[2] if known is not None and known[0] is mem and known[1] is mem_t else None
+
+    def _camera_view(self, camera: str, T_ground_robot: np.ndarray) -> Tuple[np.ndarray, float]:
+        """The camera's pose in the ground frame, and the height its view tests remembered points at."""
+        c = self.config
+        T_ground_camera = T_ground_robot @ self._T_robot_camera[camera]
+        o_z = float(T_ground_camera[2, 3])
+        # The remembered points are (x, y) only: test them at mid-height of the band the camera sees.
+        z_test = o_z if c.min_height < o_z < c.max_height else float(np.clip(o_z, c.min_height, c.max_height))
+        return T_ground_camera, z_test
+
+    def _set_memory(self, mem: np.ndarray, mem_t: np.ndarray, keys: Optional[np.ndarray]) -> None:
+        c = self.config
         if len(mem) > c.memory_points:  # bounded: keep the newest
             mem, mem_t = mem[-c.memory_points:], mem_t[-c.memory_points:]
             keys = keys[-c.memory_points:] if keys is not None else None
         self.memory = (mem, mem_t)
         self._memory_keys = (mem, mem_t, keys) if keys is not None else None
 
-    def _seen_through(self, p_cam: np.ndarray, K: np.ndarray, depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
+    def _remember_numpy(self, scan: ObstacleScan, mem: np.ndarray, mem_t: np.ndarray, keys: Optional[np.ndarray],
+                        depth_m: np.ndarray, K: np.ndarray, T_ground_robot: np.ndarray, T_ground_camera: np.ndarray,
+                        z_test: float, depth_scale: float) -> Tuple[np.ndarray, np.ndarray, Optional[np.ndarray]]:
+        """``_remember``'s memory (points, times, cell keys when known) before its bound on the points."""
+        c = self.config
+        keep = (scan.t - mem_t) <= c.memory_time
+        if not keep.all():
+            mem, mem_t, keys = _compact(mem, mem_t, keys, keep)
+        alive = None  # the remembered points this frame does not see through (None: all)
+        if len(mem):
+            R, o = T_ground_camera[:3, :3], T_ground_camera[:3, 3]
+            # The points less the camera position; their height is the test height for all, a
+            # column of one number whose products are the same for every point.
+            p_cam = _product(mem.T - o[:2, None], R[:2].T)
+            p_cam += ((z_test - o[2]) * R[2])[:, None]
+            seen = self._seen_through(p_cam[0], p_cam[1], p_cam[2], K, depth_m, depth_scale)
+            if seen.any():
+                alive = ~seen
+        if len(scan.points_xy):
+            new = _product(scan.points_xy.T, T_ground_robot[:2, :2])
+            new += T_ground_robot[:2, 3:4]
+            new = new.T
+            if alive is not None:
+                mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
+            if keys is not None:
+                mem, mem_t, keys = self._add_to_cells(mem, mem_t, keys, new, scan.t)
+            else:
+                mem, mem_t, keys = self._one_per_cell(np.vstack([mem, new]),
+                                                      np.concatenate([mem_t, np.full(len(new), scan.t)]))
+        else:
+            if alive is not None:
+                mem, mem_t, keys = _compact(mem, mem_t, keys, alive)
+            if keys is None and len(mem):
+                mem, mem_t, keys = self._one_per_cell(mem, mem_t)
+        return mem, mem_t, keys
+
+    def _seen_through(self, x: np.ndarray, y: np.ndarray, z: np.ndarray, K: np.ndarray, depth_m: np.ndarray,
+                      depth_scale: float) -> np.ndarray:
         """Which points (camera frame) the frame shows something farther than at their pixel."""
-        z = p_cam[:, 2]
         h, w = depth_m.shape
         with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.round(K[0, 0] * p_cam[:, 0] / z + K[0, 2]).astype(np.int64, copy=False)
-            v = np.round(K[1, 1] * p_cam[:, 1] / z + K[1, 2]).astype(np.int64, copy=False)
+            u = np.round(K[0, 0] * x / z + K[0, 2]).astype(np.int64, copy=False)
+            v = np.round(K[1, 1] * y / z + K[1, 2]).astype(np.int64, copy=False)
         # As unsigned, a negative index is above any image size: one comparison per bound pair.
         in_view = (z > self.robot.localizer.min_range) & (u.view(np.uint64) < w) & (v.view(np.uint64) < h)
-        seen = np.zeros(len(p_cam), dtype=bool)
+        seen = np.zeros(len(z), dtype=bool)
         idx = in_view.nonzero()[0]
         if len(idx):
             d = _metres(depth_m[v[idx], u[idx]], depth_scale)
@@ -586,17 +656,14 @@ class ProtectiveStop:
         return (np.concatenate([mem, new.take(pick, axis=0)]), np.concatenate([mem_t, np.full(len(pick), t)]),
                 np.concatenate([keys, (picked[:, 0] << 32) + (picked[:, 1] & 0xFFFFFFFF)]))
 
-    def _explained_by_walls(self, p_robot: np.ndarray, pose: Tuple[float, float, float], T_ground_robot: np.ndarray,
-                            compiled: bool = False) -> np.ndarray:
-        p_ground = p_robot @ T_ground_robot[:3, :3].T
-        if compiled:
-            x_lo, x_hi, y_lo, y_hi = scan_kernels.to_ground(p_ground, T_ground_robot[:3, 3])
-        else:
-            _add_columns(p_ground, T_ground_robot[:3, 3])
-            gx, gy = p_ground[:, 0], p_ground[:, 1]
-            x_lo, x_hi, y_lo, y_hi = gx.min(), gx.max(), gy.min(), gy.max()
+    def _explained_by_walls(self, p_robot: np.ndarray, pose: Tuple[float, float, float], T_ground_robot: np.ndarray
+                            ) -> np.ndarray:
+        g = _product(p_robot.T, T_ground_robot[:3, :3])
+        g += T_ground_robot[:3, 3:4]
+        gx, gy = g[0], g[1]
+        x_lo, x_hi, y_lo, y_hi = gx.min(), gx.max(), gy.min(), gy.max()
         tol = self.config.wall_tolerance
-        explained = np.zeros(len(p_ground), dtype=bool)
+        explained = np.zeros(len(gx), dtype=bool)
         xy = np.asarray(pose[:2])
         # The walls within range of the pose whose box the points reach: no other wall can explain
         # any of them, so skipping those changes nothing.
@@ -604,12 +671,7 @@ class ProtectiveStop:
         some = False
         for k in (~(v < self._wall_bounds).any(axis=1)).nonzero()[0].tolist():
             w = self._walls[k]
-            dist = p_ground @ w.n
-            if compiled:
-                idx, rows = scan_kernels.close_points(dist, w.d, tol, explained, p_ground)
-                if len(idx):
-                    scan_kernels.mark_inside(rows @ w.R_plane.T, w.flat, idx, explained)
-                continue
+            dist = _product(g, w.n[None, :])[0]
             dist += w.d
             close = np.abs(dist) < tol
             if some:
@@ -617,16 +679,19 @@ class ProtectiveStop:
             idx = close.nonzero()[0]
             if len(idx) == 0:
                 continue
-            q = p_ground.take(idx, axis=0) @ w.R_plane.T
-            inside = _inside_polygons(q, w)
+            q = _product(g.take(idx, axis=1), w.R_plane)
+            inside = _inside_polygons(q[0], q[1], w)
             if inside.any():
                 explained[idx[inside]] = True
                 some = True
         return explained
 
     def _near_footprint(self, xy: np.ndarray, distance: float) -> np.ndarray:
-        dx = np.maximum(np.abs(xy[:, 0] - self.config.footprint_offset_x) - self._half_x, 0.0)
-        dy = np.maximum(np.abs(xy[:, 1]) - self._half_y, 0.0)
+        return self._near_footprint_xy(xy[:, 0], xy[:, 1], distance)
+
+    def _near_footprint_xy(self, x: np.ndarray, y: np.ndarray, distance: float) -> np.ndarray:
+        dx = np.maximum(np.abs(x - self.config.footprint_offset_x) - self._half_x, 0.0)
+        dy = np.maximum(np.abs(y) - self._half_y, 0.0)
         return np.hypot(dx, dy) <= distance
 
     # -- per control tick --------------------------------------------------------------------
