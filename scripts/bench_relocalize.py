@@ -23,6 +23,12 @@ hypothesis onto it takes the truth. No method can tell such poses apart from
 these views, so the right verdict there is *ambiguous* with the truth in the list; the 90 %
 target for a correct *unique* is over the other poses. A pose whose verdict is unique or none is
 never counted as map-symmetric (there is no twin to test): it stays in the denominator.
+
+*Twin but for one wall a panel could hide* (one view only, ``panel_twin``): an ambiguous list
+with the truth where a refined rival, scored with a panel's credit, sees the truth's map except
+where its own walls lie behind the truth's by up to twice the panel reach along the ray. A panel
+standing where the truth's wall is would make that rival the right answer, so the relocalizer's
+one-panel model must keep it; the table's last column leaves these poses out as well.
 """
 
 from __future__ import annotations
