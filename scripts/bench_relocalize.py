@@ -174,21 +174,23 @@ SYM_TOL, SYM_REL = 0.02, 0.01  # m, and relative: depth agreement
 SYM_DECIMATION = 4
 
 
+def _map_depths(plane_map, pose, cache: Dict) -> List[np.ndarray]:
+    """Exact depth of the map alone seen from ``pose`` by each camera (decimated)."""
+    scene = cache.setdefault("scene", SimScene(plane_map, floor=False, backdrop=False))
+    return [render_depth_frame(ROBOT, scene, c.name, pose, noise=None, decimation=SYM_DECIMATION).depth_m()
+            for c in ROBOT.cameras]
+
+
 def map_twin(plane_map, pose, hypotheses, cache: Dict) -> bool:
     """Whether a hypothesis away from the truth sees the same map as the truth (see the docstring)."""
     # The map alone: no floor (it says nothing of x, y, phi) and no backdrop (what lies beyond the
     # map's openings is no part of it, and the relocalizer scores no pixel the map predicts nothing
     # for). The backdrop, a box around the map's bounds, is not symmetric when the map is: twin
     # units side by side see it at different distances through their windows.
-    scene = cache.setdefault("scene", SimScene(plane_map, floor=False, backdrop=False))
     max_range = ROBOT.localizer.max_range
 
-    def depths(p):
-        return [render_depth_frame(ROBOT, scene, c.name, p, noise=None, decimation=SYM_DECIMATION).depth_m()
-                for c in ROBOT.cameras]
-
     def same_view(p) -> bool:
-        for a, b in zip(truth, depths(p)):
+        for a, b in zip(truth, _map_depths(plane_map, p, cache)):
             va, vb = (a > 0) & (a < max_range), (b > 0) & (b < max_range)
             seen = va | vb
             agree = va & vb & (np.abs(a - b) <= np.maximum(SYM_TOL, SYM_REL * np.maximum(a, b)))
@@ -196,7 +198,7 @@ def map_twin(plane_map, pose, hypotheses, cache: Dict) -> bool:
                 return False
         return True
 
-    truth = depths(pose)
+    truth = _map_depths(plane_map, pose, cache)
     own = _own_hypothesis(pose, hypotheses)
     for h in hypotheses:
         hp = (h.x, h.y, h.phi)
@@ -219,12 +221,7 @@ def panel_twin(plane_map, pose, hypotheses, cache: Dict) -> bool:
     standing where the truth's wall is would hide it). Such a rival is what the relocalizer's
     one-panel model must keep (a real panel there makes it the right answer), so no method with
     that model can tell the two apart from these views."""
-    scene = cache.setdefault("scene", SimScene(plane_map, floor=False, backdrop=False))
     max_range = ROBOT.localizer.max_range
-
-    def depths(p):
-        return [render_depth_frame(ROBOT, scene, c.name, p, noise=None, decimation=SYM_DECIMATION).depth_m()
-                for c in ROBOT.cameras]
 
     truth = None
     for h in hypotheses:
@@ -232,9 +229,9 @@ def panel_twin(plane_map, pose, hypotheses, cache: Dict) -> bool:
             continue  # no panel's credit in its score
         if math.hypot(h.x - pose[0], h.y - pose[1]) < 0.03 and abs(math.remainder(h.phi - pose[2], 2 * math.pi)) < math.radians(1.0):
             continue
-        truth = depths(pose) if truth is None else truth
+        truth = _map_depths(plane_map, pose, cache) if truth is None else truth
         ok = True
-        for a, b in zip(truth, depths((h.x, h.y, h.phi))):
+        for a, b in zip(truth, _map_depths(plane_map, (h.x, h.y, h.phi), cache)):
             va, vb = (a > 0) & (a < max_range), (b > 0) & (b < max_range)
             seen = va | vb
             agree = va & vb & (np.abs(a - b) <= np.maximum(SYM_TOL, SYM_REL * np.maximum(a, b)))

@@ -1202,28 +1202,24 @@ def coplanar_groups(plane_map: PlaneMap) -> Dict[str, str]:
     cached = plane_map.__dict__.get("_coplanar_groups")
     if cached is not None:
         return cached
+    bins = int(round(2.0 * math.pi / COPLANAR_ANGLE))
     by_key: Dict[Tuple[int, int], List[Tuple[np.ndarray, float, str]]] = {}
     groups: Dict[str, str] = {}
     for p in plane_map.planes:
         n = np.asarray(p.normal, float)
-        # Binned by heading and offset; a plane near a bin's border is looked up in the
-        # neighbouring bins too, so the bins never split a group.
-        a = math.atan2(n[1], n[0])
-        ka, kd = int(math.floor(a / COPLANAR_ANGLE)), int(math.floor(p.d / COPLANAR_OFFSET))
-        found = None
-        if abs(n[2]) < 0.5:  # walls only: the floor and ceiling hide nothing here
-            for da in (-1, 0, 1):
-                for dd in (-1, 0, 1):
-                    for n2, d2, g in by_key.get(((ka + da) % int(round(2 * math.pi / COPLANAR_ANGLE)), kd + dd), ()):
-                        if float(n @ n2) > math.cos(COPLANAR_ANGLE) and abs(p.d - d2) < COPLANAR_OFFSET:
-                            found = g
-                            break
-                    if found is not None:
-                        break
-                if found is not None:
-                    break
-            by_key.setdefault((ka % int(round(2 * math.pi / COPLANAR_ANGLE)), kd), []).append((n, float(p.d), found or p.id))
-        groups[p.id] = found or p.id
+        if abs(n[2]) >= 0.5:  # walls only: the floor and ceiling hide nothing here
+            groups[p.id] = p.id
+            continue
+        # Binned by heading and offset; the neighbouring bins are looked in too, so that a
+        # plane near a bin's border is never split from its group.
+        ka = int(math.floor(math.atan2(n[1], n[0]) / COPLANAR_ANGLE))
+        kd = int(math.floor(p.d / COPLANAR_OFFSET))
+        near = (entry for da in (-1, 0, 1) for dd in (-1, 0, 1)
+                for entry in by_key.get(((ka + da) % bins, kd + dd), ()))
+        g = next((g for n2, d2, g in near
+                  if float(n @ n2) > math.cos(COPLANAR_ANGLE) and abs(p.d - d2) < COPLANAR_OFFSET), p.id)
+        by_key.setdefault((ka % bins, kd), []).append((n, float(p.d), g))
+        groups[p.id] = g
     plane_map.__dict__["_coplanar_groups"] = groups
     return groups
 
