@@ -24,10 +24,13 @@ lint: $(STAMP)
 
 test: lint test-only
 
-# The suite alone (CI runs it a second time under Python 3.8 with VENV=.venv38).
+# The suite alone (CI runs it a second time under Python 3.8 with VENV=.venv38), spread over
+# one worker per logical CPU (pytest-xdist; TEST_JOBS=0 runs it in this process). Tests share
+# nothing but the kernels' on-disk cache, which takes a lock (robot/base/kernel_cache.py).
+TEST_JOBS ?= logical
 test-only: $(STAMP)
 	bash scripts/ensure_ci_tools.sh
-	$(PY) -m pytest
+	$(PY) -m pytest -n $(TEST_JOBS)
 
 # The suite RUNS times in a row (default 3) while a busy loop hogs one core: no test may depend
 # on the machine's speed (issue 14). Stops at the first failing run.
