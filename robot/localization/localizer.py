@@ -206,6 +206,13 @@ class Localizer:
         self.last_roi_labels: Dict[str, np.ndarray] = {}
         self._geometry: Dict[Tuple, _FrameGeometry] = {}
         self._extent: Dict[int, Tuple[float, float]] = {}
+        # The map's planes as arrays, for the rival-wall check's tests over all candidates at once
+        # (a floor of alike rooms has a hundred walls within range: one by one, that check was
+        # most of a localization there).
+        normals = np.array([pl.normal for pl in plane_map.planes], float).reshape(-1, 3)
+        self._normals = normals
+        self._offsets = np.array([pl.d for pl in plane_map.planes], float)
+        self._headings = np.arctan2(normals[:, 1], normals[:, 0])
 
     def localize(self, frames: Sequence[DepthFrame], coarse: Sequence[float],
                  coarse_cov: Optional[np.ndarray] = None, method: str = "joint") -> LocalizationResult:
@@ -612,24 +619,25 @@ class Localizer:
         points, where no pose within the uncertainty could put them. ``patch`` = (x/z, y/z, z) of
         the fit's inlier points, as a function: only a fit with a rival needs them."""
         win_phi = 4.0 * math.sqrt(max(cov[2, 2], 0.0)) + math.radians(1.0)
-        claimed_plane = self.map.planes[claimed]
+        cand = np.asarray(candidates, dtype=np.intp).reshape(-1)
+        if not len(cand):
+            return None
+        # The tests that need no points, over every candidate at once; candidate order is kept.
+        n_c = self._normals[claimed]
+        normals = self._normals[cand]
+        offsets = self._offsets[cand]
+        nxy_all = normals[:, :2]
+        same_plane = (normals @ n_c > math.cos(math.radians(1.0))) & (np.abs(offsets - self._offsets[claimed]) < 0.01)
+        # Heading gate: the rival's normal at this fit's angle in R puts the robot's heading here.
+        heading_off = np.abs(wrap_angle(self._headings[cand] - obs.psi_robot - coarse[2]))
+        sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", nxy_all, cov[:2, :2], nxy_all), 0.0))
+        d_pred = nxy_all @ np.asarray(coarse[:2], float) + offsets
+        keep = ((cand != claimed) & (np.abs(normals[:, 2]) <= 0.5) & ~same_plane & (heading_off <= win_phi)
+                & (np.abs(obs.d_robot - d_pred) <= 4.0 * sd + 0.2 * win_phi + 0.02))
         extent = None
-        for j in candidates:
-            if j == claimed:
-                continue
+        for j in cand[keep].tolist():
             pl = self.map.planes[j]
-            if abs(pl.normal[2]) > 0.5:
-                continue  # not a wall: its heading is undefined and the normal gate already separates it
-            if pl.normal @ claimed_plane.normal > math.cos(math.radians(1.0)) and abs(pl.d - claimed_plane.d) < 0.01:
-                continue  # the same physical plane split in the map: an equivalent measurement
-            phi_j = math.atan2(pl.normal[1], pl.normal[0]) - obs.psi_robot
-            if abs(float(wrap_angle(phi_j - coarse[2]))) > win_phi:
-                continue
             nxy = pl.normal[:2]
-            sd = math.sqrt(max(float(nxy @ cov[:2, :2] @ nxy), 0.0))
-            d_pred = float(nxy @ np.asarray(coarse[:2])) + pl.d
-            if abs(obs.d_robot - d_pred) > 4.0 * sd + 0.2 * win_phi + 0.02:
-                continue
             # Where along the wall the points are: with heading phi_j the fit's along-wall
             # direction in R turns into the rival's, t_j = (-n_y, n_x), so the points' position
             # along it in G is their robot-frame coordinate plus t_j . (x, y).
