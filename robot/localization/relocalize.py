@@ -653,10 +653,13 @@ class _Scorer:
             views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
             cols, rows, _, _ = grid.rays
+            # Each view's plane in C, a row per view: a pixel's plane by table lookup (a list of
+            # rows built pixel by pixel was a tenth of a relocalization's CPU on a 300-plane map).
+            table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
             edges = None
             if free is not None:
                 edges = _label_edges(label)
-                n_free = _free_see_through(label, edges, free, views, z, cols, rows, coarse)
+                n_free = _free_see_through(label, edges, free, table, z, cols, rows, coarse)
                 total += SEE_THROUGH * n_free
                 through += n_free
                 scored += n_free
@@ -666,9 +669,6 @@ class _Scorer:
             r_idx, c_idx = np.nonzero(has)
             edge = (_label_edges(label) if edges is None else edges)[r_idx, c_idx]
             lab = label[r_idx, c_idx]
-            # each pixel's plane by table lookup (a list of rows built pixel by pixel was a tenth
-            # of a relocalization's CPU on a 300-plane map)
-            table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
             pis = table[lab]
             ray = np.stack([cols[c_idx], rows[r_idx], np.ones(len(r_idx))], axis=1)
             denom = np.einsum("ij,ij->i", pis[:, :3], ray)
@@ -1156,6 +1156,9 @@ def _label_edges(label: np.ndarray) -> np.ndarray:
     return edge
 
 
+_NEIGHBOURS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]], np.intp)  # (row, col) steps: up, down, left, right
+
+
 def _edge_alternatives(label: np.ndarray, table: np.ndarray, r_idx: np.ndarray, c_idx: np.ndarray, edge: np.ndarray,
                        lab: np.ndarray, res: np.ndarray, zm: np.ndarray, sigma: np.ndarray, cols: np.ndarray,
                        rows: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
@@ -1165,30 +1168,33 @@ def _edge_alternatives(label: np.ndarray, table: np.ndarray, r_idx: np.ndarray, 
     A scored grid pixel stands for a cell a stride wide: where a predicted edge crosses the cell,
     which side its centre falls on is a matter of millimetres of pose, and the surface beyond the
     edge is as likely as the own one. Scoring it on its own wall alone cost the pose that is right
-    a few nats per edge pixel against a rival whose edges lie elsewhere."""
+    a few nats per edge pixel against a rival whose edges lie elsewhere.
+
+    The four neighbours are weighed together: the smallest residual wins, the own wall on a tie
+    and otherwise the first neighbour in the order up, down, left, right (what taking them one
+    by one, each replacing the pick only if strictly better, gives)."""
     if not edge.any():
         return res, lab
     e = np.flatnonzero(edge)
     re, ce, le = r_idx[e], c_idx[e], lab[e]
-    best = res[e].copy()
-    best_lab = le.copy()
     h, w = label.shape
-    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-        ln = label[np.clip(re + dr, 0, h - 1), np.clip(ce + dc, 0, w - 1)]
-        ok = np.flatnonzero((ln >= 0) & (ln != le))
-        if not len(ok):
-            continue
-        pn = table[ln[ok]]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            zp = -pn[:, 3] / (pn[:, 0] * cols[ce[ok]] + pn[:, 1] * rows[re[ok]] + pn[:, 2])
-            rn = (zm[e[ok]] - zp) / sigma[e[ok]]
-        better = (zp > 0.0) & (np.abs(rn) < np.abs(best[ok]))
-        best[ok[better]] = rn[better]
-        best_lab[ok[better]] = ln[ok[better]]
+    ln = label[np.clip(re + _NEIGHBOURS[:, :1], 0, h - 1), np.clip(ce + _NEIGHBOURS[:, 1:], 0, w - 1)]  # (4, E)
+    other = (ln >= 0) & (ln != le)
+    pn = table[np.where(other, ln, 0)]  # (4, E, 4); rows of the own wall's neighbours are masked below
+    with np.errstate(divide="ignore", invalid="ignore"):
+        zp = -pn[..., 3] / (pn[..., 0] * cols[ce] + pn[..., 1] * rows[re] + pn[..., 2])
+        rn = (zm[e] - zp) / sigma[e]
+    # Own residual first: argmin takes the first of equal values (and a NaN own residual stays).
+    size = np.concatenate((np.abs(res[e])[None, :], np.where(other & (zp > 0.0), np.abs(rn), np.inf)))
+    pick = np.argmin(size, axis=0)
+    moved = np.flatnonzero(pick > 0)
+    if not len(moved):
+        return res, lab
+    k = pick[moved] - 1
     res = res.copy()
-    res[e] = best
+    res[e[moved]] = rn[k, moved]
     lab = lab.copy()
-    lab[e] = best_lab
+    lab[e[moved]] = ln[k, moved]
     return res, lab
 
 
@@ -1224,7 +1230,7 @@ def coplanar_groups(plane_map: PlaneMap) -> Dict[str, str]:
     return groups
 
 
-def _free_see_through(label: np.ndarray, edges: np.ndarray, free: np.ndarray, views: List[PlaneView], z: np.ndarray,
+def _free_see_through(label: np.ndarray, edges: np.ndarray, free: np.ndarray, table: np.ndarray, z: np.ndarray,
                       cols: np.ndarray, rows: np.ndarray, coarse: bool) -> int:
     """How many of the returns that are not scored (``free``: beyond the range, or on the floor)
     lie behind the wall a pose predicts there, by the same test as the scored ones (three of the
@@ -1233,7 +1239,7 @@ def _free_see_through(label: np.ndarray, edges: np.ndarray, free: np.ndarray, vi
     if not at.any():
         return 0
     r_idx, c_idx = np.nonzero(at)
-    pis = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)[label[r_idx, c_idx]]
+    pis = table[label[r_idx, c_idx]]
     denom = pis[:, 0] * cols[c_idx] + pis[:, 1] * rows[r_idx] + pis[:, 2]
     zm = z[r_idx, c_idx]
     with np.errstate(divide="ignore", invalid="ignore"):
