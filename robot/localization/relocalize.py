@@ -53,7 +53,7 @@ from robot.base.geometry import compose_se2, compose_se2_jacobians, invert_se2, 
 from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, RobotConfig
 from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
-from robot.localization.roi import CameraGrid, PlaneView, predict_plane_views, rasterize_views
+from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
 from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import PlaneMap
 
