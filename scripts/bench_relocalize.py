@@ -289,6 +289,10 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
     twin_cache: Dict = {}
     for i_pose, pose in enumerate(poses):
         pose = (float(pose[0]), float(pose[1]), float(pose[2]))
+        # Each pose draws from its own stream: how many views an earlier pose's turn took must not
+        # change the clutter and noise of the poses after it, or two versions of the relocalizer
+        # are compared on different scenes.
+        rng = np.random.default_rng([seed, i_pose])
         clutter, clutter_desc = _clutter(plane_map, rng, [pose[:2]])
         scene = SimScene(plane_map, clutter=clutter)
         frames = frames_at(scene, pose, rng, noise)
@@ -433,7 +437,8 @@ def run(quick: bool = False) -> str:
     noise, noise_name = _noise()
     n = 8 if quick else 130
     lines = ["## Global relocalization (`robotctl relocalize`)", "",
-             f"Random free-space poses per map ({n} each), both cameras, {noise_name} camera model; one stationary "
+             f"Random free-space poses per map ({n} each; each pose's clutter and noise from a random stream of its own, so "
+             f"that how one pose's turn went changes nothing after it), both cameras, {noise_name} camera model; one stationary "
              "view, and (second table) the same poses with the recovery's in-place turn where that view is not "
              "unique (a view every turn step, odometry heading error 0.2 deg per step, relocalized with all "
              "views until unique). CPU time per relocalization (`time.process_time`). 'Two walls in view': the "
