@@ -995,6 +995,11 @@ class Relocalizer:
                 why = (f"the best hypothesis explains the views well only with two walls hidden by panels "
                        f"({h.two_panel_score - h.score:.0f} nats more than with one): a place shifted by one panel's "
                        "offset, that panel taken for its wall, explains them as well")
+                # Those places: the best moved back from each of its walls, by the score with two
+                # hidden walls, listed after it where they come within the margin of its own.
+                twins = [v for v in self._panel_rivals(h, scorer, coarse, fixed=True, two=True)
+                         if math.isfinite(v.two_panel_score) and v.two_panel_score >= h.two_panel_score - margin]
+                hyps_out = hyps_out[:1] + twins + hyps_out[1:]
             elif h.status == "degenerate" and h.loose is not None and supported(h) \
                     and h.see_through <= UNIQUE_SEE_THROUGH:
                 why = (f"best hypothesis not confirmed by the localizer (degenerate), and the views do not fix its "
@@ -1014,7 +1019,7 @@ class Relocalizer:
                                     "cannot tell them apart", ms, len(walls))
 
     def _panel_rivals(self, best: Hypothesis, scorer: _Scorer, coarse: _Scorer, fixed: bool = True,
-                      enough: float = math.inf) -> List[Hypothesis]:
+                      enough: float = math.inf, two: bool = False) -> List[Hypothesis]:
         """The poses that explain the views as well as ``best`` does if one wall it rests on is
         hidden by a surface standing up to ``PANEL_MAX_OFFSET`` in front of it: the robot is then
         that much farther from the wall, along the direction its other walls leave free, or straight
@@ -1067,9 +1072,21 @@ class Relocalizer:
                 two = math.nan if scorer.last_cut else scorer.last_two
                 return sc, dl, support, planes, scorer.last_see_through, scorer.last_plain, two
 
-            first = scored(float(grid[0])) if free and math.isfinite(enough) else None
+            first = scored(float(grid[0])) if free and math.isfinite(enough) and not two else None
             if first is not None and first[0] >= enough and first[2] >= MIN_SUPPORT:
                 pick = first
+            elif two:
+                # By the score with a second hidden wall too (``two``): on the fine grid (the coarse
+                # score's wide band leaves that profile flat), to the end (a floor bounds the score
+                # with one).
+                def key(r: Tuple) -> float:
+                    return max(r[0], r[6]) if math.isfinite(r[6]) else r[0]
+
+                pick = max((scored(float(dl)) for dl in grid), key=key)
+                d0 = pick[1]
+                pick = max([pick] + [scored(float(dl)) for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
+                                                                         min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP) + 1e-9,
+                                                                         0.01)], key=key)
             else:
                 # Both scans keep the best offset; an offset that cannot beat the best so far is
                 # not scored to the end (its bound stays below the best: the same pick).
