@@ -1069,8 +1069,8 @@ class Relocalizer:
                 continue
             def scored(dl: float, at=at, floor: float = -math.inf) -> Tuple[float, float, float, List[str], float, float, float]:
                 sc, support, planes = scorer.score(at(dl), rels=best.rels, floor=floor)
-                two = math.nan if scorer.last_cut else scorer.last_two
-                return sc, dl, support, planes, scorer.last_see_through, scorer.last_plain, two
+                return (sc, dl, support, planes, scorer.last_see_through, scorer.last_plain,
+                        math.nan if scorer.last_cut else scorer.last_two)
 
             first = scored(float(grid[0])) if free and math.isfinite(enough) and not two else None
             if first is not None and first[0] >= enough and first[2] >= MIN_SUPPORT:
@@ -1101,11 +1101,11 @@ class Relocalizer:
                     got = scored(float(dl), floor=pick[0] if pick is not None else -math.inf)
                     if pick is None or got > pick:
                         pick = got
-            sc, dl, support, planes, through, plain, two = pick
+            sc, dl, support, planes, through, plain, sc_two = pick
             if support >= MIN_SUPPORT:
                 x, y, phi = at(dl)
                 out.append(Hypothesis(x, y, phi, best.cov, sc, support, planes, False, "", through, best.rels,
-                                      (pid, round(dl, 3), ux, uy), free, plain, two_panel_score=two))
+                                      (pid, round(dl, 3), ux, uy), free, plain, two_panel_score=sc_two))
         return out
 
     def _refine(self, views: Sequence[View], pose, scorer: _Scorer) -> Optional[Hypothesis]:
