@@ -923,8 +923,7 @@ class Relocalizer:
         def reach(h: Hypothesis) -> float:
             if h is best:
                 return h.score
-            two = h.two_panel_score
-            return max(h.top_score, two) if math.isfinite(two) else h.top_score
+            return _or_two(h.top_score, h.two_panel_score)
 
         def reach_plain(h: Hypothesis) -> float:
             return max([_plain(h)] + ([] if h is best else [_plain(v) for v in h.panels]))
@@ -1079,14 +1078,11 @@ class Relocalizer:
                 # By the score with a second hidden wall too (``two``): on the fine grid (the coarse
                 # score's wide band leaves that profile flat), to the end (a floor bounds the score
                 # with one).
-                def key(r: Tuple) -> float:
-                    return max(r[0], r[6]) if math.isfinite(r[6]) else r[0]
-
-                pick = max((scored(float(dl)) for dl in grid), key=key)
+                pick = max((scored(float(dl)) for dl in grid), key=lambda r: _or_two(r[0], r[6]))
                 d0 = pick[1]
-                pick = max([pick] + [scored(float(dl)) for dl in np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
-                                                                         min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP) + 1e-9,
-                                                                         0.01)], key=key)
+                fine = np.arange(max(PANEL_MIN_OFFSET, d0 - 1.5 * PANEL_SCAN_STEP),
+                                 min(PANEL_MAX_OFFSET, d0 + 1.5 * PANEL_SCAN_STEP) + 1e-9, 0.01)
+                pick = max([pick] + [scored(float(dl)) for dl in fine], key=lambda r: _or_two(r[0], r[6]))
             else:
                 # Both scans keep the best offset; an offset that cannot beat the best so far is
                 # not scored to the end (its bound stays below the best: the same pick).
@@ -1344,6 +1340,11 @@ def _plain(h: Hypothesis) -> float:
     return h.plain_score if math.isfinite(h.plain_score) else h.score
 
 
+def _or_two(score: float, two: float) -> float:
+    """A score, or the same pose's score with a second wall hidden (NaN: not scored) where higher."""
+    return max(score, two) if math.isfinite(two) else score
+
+
 def _with_panels(hyps: Sequence[Hypothesis], floor: float) -> List[Hypothesis]:
     """``hyps``, each with the panels it cannot exclude (its rivals that score at least ``floor``)
     as its ``hidden_walls``: along a direction no other wall fixes, the panel may stand anywhere up
@@ -1359,7 +1360,7 @@ def _with_panels(hyps: Sequence[Hypothesis], floor: float) -> List[Hypothesis]:
         h.hidden_walls = [{"plane": v.hidden[0],
                            "up_to_m": PANEL_MAX_OFFSET if v.free else min(PANEL_MAX_OFFSET, v.hidden[1] + PANEL_SCAN_STEP),
                            "direction": [v.hidden[2], v.hidden[3]]} for v in h.panels
-                          if v.score >= floor or v.two_panel_score >= floor]
+                          if _or_two(v.score, v.two_panel_score) >= floor]
     return list(hyps)
 
 
