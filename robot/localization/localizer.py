@@ -206,13 +206,11 @@ class Localizer:
         self.last_roi_labels: Dict[str, np.ndarray] = {}
         self._geometry: Dict[Tuple, _FrameGeometry] = {}
         self._extent: Dict[int, Tuple[float, float]] = {}
-        # The map's planes as arrays, for the rival-wall check's tests over all candidates at once
-        # (a floor of alike rooms has a hundred walls within range: one by one, that check was
-        # most of a localization there).
-        normals = np.array([pl.normal for pl in plane_map.planes], float).reshape(-1, 3)
-        self._normals = normals
-        self._offsets = np.array([pl.d for pl in plane_map.planes], float)
-        self._headings = np.arctan2(normals[:, 1], normals[:, 0])
+        # Each map plane's normal, offset and heading as Python floats, for the rival-wall check:
+        # it runs for every fit over every plane within range (a hundred walls in a floor of alike
+        # rooms), where numpy's per-call cost is most of the work (for four walls as for a hundred).
+        self._plane_floats = [(float(pl.normal[0]), float(pl.normal[1]), float(pl.normal[2]), float(pl.d),
+                               math.atan2(float(pl.normal[1]), float(pl.normal[0]))) for pl in plane_map.planes]
 
     def localize(self, frames: Sequence[DepthFrame], coarse: Sequence[float],
                  coarse_cov: Optional[np.ndarray] = None, method: str = "joint") -> LocalizationResult:
@@ -619,23 +617,26 @@ class Localizer:
         points, where no pose within the uncertainty could put them. ``patch`` = (x/z, y/z, z) of
         the fit's inlier points, as a function: only a fit with a rival needs them."""
         win_phi = 4.0 * math.sqrt(max(cov[2, 2], 0.0)) + math.radians(1.0)
-        cand = np.asarray(candidates, dtype=np.intp).reshape(-1)
-        if not len(cand):
-            return None
-        # The tests that need no points, over every candidate at once; candidate order is kept.
-        n_c = self._normals[claimed]
-        normals = self._normals[cand]
-        offsets = self._offsets[cand]
-        nxy_all = normals[:, :2]
-        same_plane = (normals @ n_c > math.cos(math.radians(1.0))) & (np.abs(offsets - self._offsets[claimed]) < 0.01)
-        # Heading gate: the rival's normal at this fit's angle in R puts the robot's heading here.
-        heading_off = np.abs(wrap_angle(self._headings[cand] - obs.psi_robot - coarse[2]))
-        sd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", nxy_all, cov[:2, :2], nxy_all), 0.0))
-        d_pred = nxy_all @ np.asarray(coarse[:2], float) + offsets
-        keep = ((cand != claimed) & (np.abs(normals[:, 2]) <= 0.5) & ~same_plane & (heading_off <= win_phi)
-                & (np.abs(obs.d_robot - d_pred) <= 4.0 * sd + 0.2 * win_phi + 0.02))
+        floats = self._plane_floats
+        cnx, cny, cnz, cd, _ = floats[claimed]
+        c00, c01, c10, c11 = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 0]), float(cov[1, 1])
+        x0, y0, phi0 = float(coarse[0]), float(coarse[1]), float(coarse[2])
+        psi, d_robot = obs.psi_robot, obs.d_robot
+        same_cos = math.cos(math.radians(1.0))
         extent = None
-        for j in cand[keep].tolist():
+        for j in candidates:
+            if j == claimed:
+                continue
+            nx, ny, nz, d, heading = floats[j]
+            if abs(nz) > 0.5:
+                continue  # not a wall: its heading is undefined and the normal gate already separates it
+            if nx * cnx + ny * cny + nz * cnz > same_cos and abs(d - cd) < 0.01:
+                continue  # the same physical plane split in the map: an equivalent measurement
+            if abs(wrap_angle(heading - psi - phi0)) > win_phi:
+                continue
+            sd = math.sqrt(max((nx * c00 + ny * c10) * nx + (nx * c01 + ny * c11) * ny, 0.0))
+            if abs(d_robot - (nx * x0 + ny * y0 + d)) > 4.0 * sd + 0.2 * win_phi + 0.02:
+                continue
             pl = self.map.planes[j]
             nxy = pl.normal[:2]
             # Where along the wall the points are: with heading phi_j the fit's along-wall
