@@ -159,6 +159,53 @@ def test_score_kernel_for_a_blas_without_fused_products(numba_backend):
     assert np.array_equal(got, ref)
 
 
+@pytest.mark.parametrize("seed", range(12))
+def test_the_first_round_kernel_is_the_numpy_first_round(numba_backend, seed):
+    """Identification's first round in one call: the planes through the table's triplets, their
+    counts and the best's inlier band, exactly as _global_hypotheses, _score and _band give them;
+    on two surfaces and one, with and without a depth unit, and with repeated points (degenerate
+    triplets, left out as numpy leaves them out)."""
+    rng = np.random.default_rng(300 + seed)
+    params = pf.FitParams(depth_unit=0.001 if seed % 2 else 0.0)
+    if seed % 3 == 0:
+        rx, ry, z, _ = two_surfaces(rng, 3000, params)
+    else:
+        rx, ry, q = wall_points(rng, 3000)
+        z = 1.0 / noisy_inverse_depth(rng, rx, ry, q, params, outliers=0.02 * (seed % 3))
+    if seed % 4 == 1:  # a few points repeated: some triplets span no plane
+        rx[1::7], ry[1::7], z[1::7] = rx[0::7][:len(rx[1::7])], ry[0::7][:len(rx[1::7])], z[0::7][:len(rx[1::7])]
+    sub = pf._subsample(rx, ry, z, params)
+    m = len(sub.z)
+    nh, dh = pf._global_hypotheses(sub, np.arange(m), params.iterations)
+    score = pf._score(sub, nh, dh, None)
+    got_n, got_d, got_score, best, band = fk.first_hypotheses(sub.P, pf._TABLE, params.iterations, sub.rays32,
+                                                              sub.z32, sub.thr32, sub.rx, sub.ry, sub.y, params)
+    assert np.array_equal(got_n, nh) and np.array_equal(got_d, dh) and np.array_equal(got_score, score)
+    assert best == int(score.argmax())
+    assert np.array_equal(band, pf._band(sub, -nh[best] / dh[best], params))
+
+
+def test_identification_takes_the_same_surfaces_with_the_first_round_compiled(numba_backend, monkeypatch):
+    """_find_surfaces with the compiled first round and with the numpy one: the same surfaces,
+    masks and all, on one surface, on two, and on clutter in front of a wall."""
+    rng = np.random.default_rng(5)
+    for k in range(9):
+        params = pf.FitParams(depth_unit=0.001)
+        if k % 3 == 0:
+            rx, ry, z, _ = two_surfaces(rng, 3000, params)
+        else:
+            rx, ry, q = wall_points(rng, 3000)
+            z = 1.0 / noisy_inverse_depth(rng, rx, ry, q, params, outliers=0.15 * (k % 3))
+        sub = pf._subsample(rx, ry, z, params)
+        got = pf._find_surfaces(sub, params)
+        with monkeypatch.context() as m:
+            m.setattr(fk, "backend", lambda: "numpy")
+            ref = pf._find_surfaces(sub, params)
+        assert len(got) == len(ref) > 0
+        for a, b in zip(got, ref):
+            assert np.array_equal(a.n, b.n) and a.d == b.d and np.array_equal(a.mask, b.mask) and a.refined == b.refined
+
+
 @pytest.mark.parametrize("seed", range(10))
 def test_behind_count_equals_numpy(numba_backend, seed):
     rng = np.random.default_rng(200 + seed)

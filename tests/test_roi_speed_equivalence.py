@@ -403,3 +403,54 @@ def test_label_image_is_reused_and_reset():
     assert all(a is labels[0] for a in labels)
     # No views: all -1, whatever was drawn before.
     assert (rasterize_views([], grid) == -1).all()
+
+
+@pytest.mark.parametrize("name", ["room_grid", "institute_ground", "paper_arena"])
+def test_the_compiled_outlines_are_the_numpy_outlines(name):
+    """fit_kernels.outlines (clip, project, per-plane box) against the numpy code it replaces, on
+    the same stacked polygons: poses anywhere in and around a floor of alike rooms (a dozen
+    polygons per view, most crossing the frustum), a building and the arena, on the relocalizer's
+    coarse grid, the localizer's and a padded one."""
+    pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
+    from drivers.sim.building import grid_for_planes, room_grid_map
+    from robot.localization import fit_kernels, roi
+
+    if fit_kernels.backend() != "numba":
+        pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
+    if name == "room_grid":
+        plane_map = room_grid_map(*grid_for_planes(288), seed=288)
+        rng = np.random.default_rng(9)
+        lo, hi = plane_map.bounds()
+        poses = [(float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
+                 for x, y in rng.uniform(lo[:2] - 0.5, hi[:2] + 0.5, (40, 2))]
+    else:
+        plane_map, poses = plane_map_and_poses(name, 40, 6)
+    index = PlaneIndex(plane_map)
+    pk = packed_polygons(plane_map)
+    clipped = kept = 0
+    for cam in ROBOT.cameras:
+        K = cam.intrinsics_from_fov()
+        for stride, pad in ((32, 0), (4, 0), (4, 6)):
+            Kp = K.copy()
+            Kp[:2, 2] += pad * stride
+            grid = CameraGrid(Kp, cam.width + 2 * pad * stride, cam.height + 2 * pad * stride, stride)
+            consts = grid._per_frame()
+            for pose in poses:
+                T = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
+                facing, _ = roi._facing_camera(pk, index.in_view(T, grid.frustum, MAX_RANGE), T)
+                if not facing:
+                    continue
+                polys = roi._stack_in_camera(pk, facing, T)
+                ref = roi._outlines(polys, consts, grid, MAX_RANGE)
+                got = roi._outlines_compiled(polys, consts, grid, MAX_RANGE)
+                where = (name, pose, cam.name, stride, pad)
+                assert [g[0] for g in got] == [r[0] for r in ref], where
+                for g, r in zip(got, ref):
+                    assert type(g[0]) is int and g[3] == r[3] and g[4] == r[4], where
+                    assert len(g[1]) == len(r[1]) and len(g[2]) == len(r[2]), where
+                    assert all(same_array(a, b) for a, b in zip(g[1], r[1])), where
+                    assert all(same_array(a, b) for a, b in zip(g[2], r[2])), where
+                c = roi._clip_to_frustum(polys, consts)
+                clipped += sum(1 for k, j in c.kept if j != k)
+                kept += len(ref)
+    assert kept > 100 and clipped > 50  # the views held planes, and many polygons were clipped

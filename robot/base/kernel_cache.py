@@ -18,7 +18,7 @@ import contextlib
 import os
 import tempfile
 from pathlib import Path
-from typing import Any, Dict, Iterator, Optional, Sequence
+from typing import Any, Callable, Dict, Iterator, Optional, Sequence
 
 try:
     import fcntl
@@ -77,3 +77,23 @@ def jit_table(numba: Any, namespace: Dict[str, Any], names: Sequence[str], **fla
         except RuntimeError:
             out[name] = numba.njit(cache=False, nogil=True, fastmath=False, **flags)(namespace[name])
     return out
+
+
+def compile_kernel_set(table: Dict[str, Any], load: Callable[[], Dict[str, Any]],
+                       run_each: Callable[[Dict[str, Any]], None], what: str, strict: bool) -> str:
+    """Fill ``table`` (a kernel module's own) with its compiled kernels: ``load()``'s dispatchers
+    (or their ahead-of-time build), each run once by ``run_each`` under the cache lock, so that
+    they compile or load from the cache there and nowhere else. Returns "", or why ``what`` did
+    not compile (``table`` is then left empty: the module runs its numpy code); ``strict`` (the
+    operator asked for numba): raises instead."""
+    try:
+        kernels = load()
+        with cache_lock():  # no other process of ours writes numba's cache meanwhile
+            run_each(kernels)
+        table.update(kernels)
+        return ""
+    except Exception as e:
+        table.clear()
+        if strict:
+            raise
+        return f"{what} did not compile: {type(e).__name__}: {e}".split("\n")[0]

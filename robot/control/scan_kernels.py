@@ -47,7 +47,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from robot.base.kernel_cache import cache_lock, jit_table
+from robot.base.kernel_cache import compile_kernel_set, jit_table
 from robot.localization import fit_kernels
 
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher, once they compiled
@@ -84,17 +84,11 @@ def warm_up() -> float:
         return 0.0
     t0 = time.perf_counter()
     with _lock:
-        if _nb or _failed:
-            return time.perf_counter() - t0
-        try:
-            _nb.update(_load())
-            with cache_lock():  # no other process of ours writes numba's cache meanwhile
-                _run_each_kernel()
-        except Exception as e:
-            _nb.clear()
-            _failed = f"the scan's numba kernels did not compile: {type(e).__name__}: {e}".split("\n")[0]
-            if os.environ.get(fit_kernels.ENV, "auto").strip().lower() == "numba":
-                raise
+        if not (_nb or _failed):
+            # (The scan's callers read the module's table: it is filled before they run.)
+            _failed = compile_kernel_set(_nb, _load, lambda kernels: (_nb.update(kernels), _run_each_kernel()),
+                                         "the scan's numba kernels",
+                                         os.environ.get(fit_kernels.ENV, "auto").strip().lower() == "numba")
     return time.perf_counter() - t0
 
 

@@ -6,12 +6,22 @@ cost. Here each of those parts is one numba-compiled function:
 
 * the refit: every stage and iteration of the weighted least squares in inverse depth
   (``plane_fit._refit`` over ``_solve_step``);
-* the hypothesis scoring of identification (``plane_fit._score``);
+* the hypothesis scoring of identification (``plane_fit._score``), and identification's first
+  round in one call: the planes through the fixed table's point triplets, their scores, and the
+  inlier band of the best (``plane_fit._global_hypotheses``, ``_score`` and ``_band``);
 * the share of points behind a surface (the first pass of ``plane_fit._behind_points``);
 * the plane's covariance from the normal equations (three 3 x 3 inverses and products);
 * the inlier summary (centroid, depth, spread) and ``plane_fit._not_flat``'s half-patch sums;
 * the gather of a wall's ROI: its pixels' depths in metres, those within the range limits and
-  their rays (``gather_roi``; its numpy code is the localizer's, kept here beside it).
+  their rays (``gather_roi``; its numpy code is the localizer's, kept here beside it);
+* the ROI prediction's geometry (:func:`outlines`): the polygons that cross a frustum plane
+  clipped against the planes they cross (Sutherland-Hodgman, as ``visibility.clip_vertex_list``),
+  every kept vertex projected to full-resolution and fixed-point grid pixels, and per plane its
+  nearest depth and grid box (``roi._clip_to_frustum``, ``_project`` and ``_plane_outlines``). The
+  fill that follows stays OpenCV's: its rasterization rules decide which pixels an outline
+  takes, and the ROIs, and every relocalization verdict built on the same labels, were measured
+  with them. On a floor of alike rooms, where a camera sees a dozen polygons that all cross the
+  frustum's top, this loop was a tenth of a relocalization's CPU.
 
 The numpy code in ``plane_fit`` stays the reference and the fallback. The kernels repeat its
 arithmetic operation for operation, so they agree with it to the rounding of its sums and
@@ -135,7 +145,7 @@ def set_backend(name: Optional[str]) -> str:
 
 
 _KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "_inv_kernel", "_summary_kernel",
-            "_gather_kernel")
+            "_gather_kernel", "_hypotheses_kernel", "_outline_kernel")
 
 
 def _use_aot() -> bool:
@@ -180,7 +190,8 @@ def jit_kernels() -> Dict[str, Any]:
     for an argument type it was not built for)."""
     import numba
 
-    numba.extending.register_jitable(_solve3)  # called from the kernels, stays plain Python here
+    for fn in (_solve3, _count_inliers, _clip):  # called from the kernels, stay plain Python here
+        numba.extending.register_jitable(fn)
     return jit_table(numba, globals(), _KERNELS)
 
 
@@ -229,6 +240,10 @@ def _run_each_kernel() -> None:
     nh = np.array([[0.0, 0.0, -1.0], [0.1, 0.0, -1.0]], np.float32)
     _nb["_score_kernel"](nh, np.array([2.0, 2.1], np.float32), rays, z.astype(np.float32), np.full(n, 0.01, np.float32),
                          _NO_COLS, True, _fused)
+    P = rays.astype(np.float64) * z
+    table = np.random.default_rng(1).random((3, 16))
+    _nb["_hypotheses_kernel"](P, table, 8, rays, z.astype(np.float32), np.full(n, 0.01, np.float32), _fused, rx, ry, y,
+                              1e-6, 1e-7, 9.0, 0.004)
     n_c = np.array([0.0, 0.0, -1.0])
     _nb["_behind_kernel"](rx, ry, z, 1, n_c, 2.0, 1e-3, 1e-7, True, 0.03)
     B = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -238,6 +253,11 @@ def _run_each_kernel() -> None:
     depth = np.full((4, 4), 1500, np.uint16)
     idx = np.arange(3, dtype=np.int32)  # the ROI's rows and columns come as int32 (cv2.findNonZero)
     _nb["_gather_kernel"](depth.ravel(), idx, idx, 4, 1, 0.001, 0.2, 10.0, np.zeros(4), np.zeros(4))
+    # A square in front of a camera that crosses one frustum plane.
+    P = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
+    one = np.ones(1, np.int64)
+    outlines(P, one * 0, one * 2, one * 0, one * 4, one * 0, np.array([[0.0, 0.0, 1.0, -0.01], [1.0, 0.0, 0.0, 0.5]]),
+             np.array([100.0, 100.0]), np.array([50.0, 50.0]), 4.0, 0.01, 4, 25, 25, 6.0)
 
 
 def _f64(a: np.ndarray) -> np.ndarray:
@@ -275,6 +295,22 @@ def score(nh: np.ndarray, dh: np.ndarray, rays32: np.ndarray, z32: np.ndarray, t
     return _nb["_score_kernel"](np.ascontiguousarray(nh, f32), np.ascontiguousarray(dh, f32), np.ascontiguousarray(rays32, f32),
                                 np.ascontiguousarray(z32, f32), np.ascontiguousarray(thr32, f32),
                                 _NO_COLS if all_cols else np.ascontiguousarray(cols, np.intp), all_cols, _fused)
+
+
+def first_hypotheses(P: np.ndarray, table: np.ndarray, count: int, rays32: np.ndarray, z32: np.ndarray,
+                     thr32: np.ndarray, rx: np.ndarray, ry: np.ndarray, y: np.ndarray, params: FitParams
+                     ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, int, Optional[np.ndarray]]:
+    """Identification's first round over all m subsample points (points P (3, m), their rays,
+    depths and bands in float32, rays rx, ry and inverse depths y): the planes through the point
+    triplets ``table[:, :count] * m`` (``plane_fit._global_hypotheses``; degenerate triplets left
+    out), their inlier counts (``plane_fit._score``), the first best, and its inlier band
+    (``plane_fit._band``; None without hypotheses)."""
+    c = params.noise_subpixel / params.noise_fx_b
+    nh, dh, score, best, band = _nb["_hypotheses_kernel"](
+        _f64(P), table, int(count), np.ascontiguousarray(rays32, np.float32), np.ascontiguousarray(z32, np.float32),
+        np.ascontiguousarray(thr32, np.float32), _fused, _f64(rx), _f64(ry), _f64(y), c * c,
+        params.depth_unit**2 / 12.0 if params.depth_unit > 0 else 0.0, params.sigma_k**2, float(params.min_threshold))
+    return nh, dh, score, int(best), (band if best >= 0 else None)
 
 
 def behind_count(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, stride: int, n: np.ndarray, d: float,
@@ -336,6 +372,22 @@ def gather_roi(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, stride: in
     if np.count_nonzero(ok) < n_roi:
         z, rows, cols = z[ok], rows[ok], cols[ok]
     return z, ray_cols.take(cols), ray_rows.take(rows), n_roi
+
+
+def outlines(P_camera: np.ndarray, every: np.ndarray, some: np.ndarray, first: np.ndarray, counts: np.ndarray,
+             plane_of: np.ndarray, frustum: np.ndarray, f_px: np.ndarray, c_px: np.ndarray, fixed_scale: float,
+             near: float, stride: int, grid_h: int, grid_w: int, max_range: float) -> Tuple[np.ndarray, ...]:
+    """``roi._clip_to_frustum``, ``roi._project`` and ``roi._plane_outlines`` in one pass over the
+    stacked polygons (vertices ``P_camera`` (N, 3), polygon k's rows ``first[k]`` on for
+    ``counts[k]``, on map plane ``plane_of[k]``; ``every`` and ``some``: the AND and the OR of its
+    vertices' outside-bits over the (F, 4) ``frustum``). Returns (px (M, 2) full-resolution pixels,
+    fixed (M, 2) int32 fixed-point grid pixels, seg (n + 1,) the rows of each kept polygon,
+    planes (p,) the map plane of each plane kept, its kept polygons (p, 2) (first, one past the
+    last), z_near (p,), boxes (p, 4) (c0, r0, c1, r1)): the planes whose nearest visible depth
+    is under ``max_range``, in stacking order."""
+    return _nb["_outline_kernel"](P_camera, every, some, first, counts, plane_of, frustum,
+                                  float(f_px[0]), float(f_px[1]), float(c_px[0]), float(c_px[1]), float(fixed_scale),
+                                  float(near), int(stride), int(grid_h), int(grid_w), float(max_range))
 
 
 def _probe_fused() -> bool:
@@ -516,9 +568,15 @@ def _score_kernel(nh, dh, rays, z, thr, cols, all_cols, fused):  # pragma: no co
     """plane_fit._score per hypothesis and point, in float32: |n.ray z + d| < -thr n.ray, with
     n.ray rounded as numpy's matrix product rounds it (``fused``: a chain of fused multiply-adds,
     emulated in float64, where products of float32 values are exact)."""
+    out = np.zeros(nh.shape[0], np.intp)
+    _count_inliers(nh, dh, rays, z, thr, cols, all_cols, fused, out)
+    return out
+
+
+def _count_inliers(nh, dh, rays, z, thr, cols, all_cols, fused, out):  # pragma: no cover (compiled)
+    """_score_kernel's counts into ``out`` (float32 nh (H, 3) and dh (H,))."""
     nhyp = nh.shape[0]
     m = z.shape[0] if all_cols else cols.shape[0]
-    out = np.zeros(nhyp, np.intp)
     for h in range(nhyp):
         a0 = nh[h, 0]
         a1 = nh[h, 1]
@@ -539,7 +597,65 @@ def _score_kernel(nh, dh, rays, z, thr, cols, all_cols, fused):  # pragma: no co
             if err < nr * -thr[j]:
                 count += 1
         out[h] = count
-    return out
+
+
+def _hypotheses_kernel(P, table, count, rays, z, thr, fused, rx, ry, y, c2, qvar, sk2, min_thr):  # pragma: no cover (compiled)
+    """plane_fit._global_hypotheses over all m points, _score of each and _band of the first best."""
+    m = P.shape[1]
+    nh = np.empty((count, 3))
+    dh = np.empty(count)
+    k = 0
+    for h in range(count):
+        i0 = np.intp(table[0, h] * m)
+        i1 = np.intp(table[1, h] * m)
+        i2 = np.intp(table[2, h] * m)
+        a0, a1, a2 = P[0, i0], P[1, i0], P[2, i0]
+        u0, u1, u2 = P[0, i1] - a0, P[1, i1] - a1, P[2, i1] - a2
+        v0, v1, v2 = P[0, i2] - a0, P[1, i2] - a1, P[2, i2] - a2
+        n0 = u1 * v2 - u2 * v1
+        n1 = u2 * v0 - u0 * v2
+        n2 = u0 * v1 - u1 * v0
+        norm = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        if not norm > 1e-9:
+            continue  # a degenerate triplet
+        n0 /= norm
+        n1 /= norm
+        n2 /= norm
+        d = -(n0 * a0 + n1 * a1 + n2 * a2)
+        sign = -1.0 if d < 0 else 1.0  # normal towards the camera: d > 0
+        nh[k, 0], nh[k, 1], nh[k, 2] = n0 * sign, n1 * sign, n2 * sign
+        dh[k] = d * sign
+        k += 1
+    nh = nh[:k]
+    dh = dh[:k]
+    nh32 = np.empty((k, 3), np.float32)
+    dh32 = np.empty(k, np.float32)
+    for h in range(k):
+        nh32[h, 0], nh32[h, 1], nh32[h, 2] = np.float32(nh[h, 0]), np.float32(nh[h, 1]), np.float32(nh[h, 2])
+        dh32[h] = np.float32(dh[h])
+    score = np.zeros(k, np.intp)
+    _count_inliers(nh32, dh32, rays, z, thr, np.zeros(0, np.intp), True, fused, score)
+    band = np.zeros(m, np.bool_)
+    best = -1
+    top = -1
+    for h in range(k):
+        if score[h] > top:
+            top = score[h]
+            best = h
+    if best >= 0:
+        q0, q1, q2 = -nh[best, 0] / dh[best], -nh[best, 1] / dh[best], -nh[best, 2] / dh[best]
+        for j in range(m):
+            yp = rx[j] * q0 + ry[j] * q1 + q2
+            t = yp * yp
+            var = c2 + t * t * qvar
+            b = t * min_thr
+            b = b * b
+            r = y[j] - yp
+            lim = var * sk2
+            if b > lim:
+                lim = b
+            band[j] = r * r < lim and yp > 0
+    return nh, dh, score, best, band
 
 
 def _behind_kernel(rx, ry, z, stride, n, d, c, qvar, quantised, margin_min):  # pragma: no cover (compiled)
@@ -653,3 +769,135 @@ def _gather_kernel(flat, rows, cols, row_step, stride, scale, zmin, zmax, ray_co
             ry[k] = ray_rows[r]
             k += 1
     return z[:k], rx[:k], ry[:k]
+
+
+def _clip(buf, n, planes, bits, out):  # pragma: no cover (compiled)
+    """visibility.clip_vertex_list of the polygon buf[:n] (rows x, y, z) against the planes whose
+    bit is set in ``bits``, in their order: the number of vertices left (0: fewer than 3), the
+    polygon in buf[:count]. ``out`` is scratch of buf's size."""
+    for j in range(planes.shape[0]):
+        if not (bits >> j) & 1:
+            continue
+        a, b, c, d = planes[j, 0], planes[j, 1], planes[j, 2], planes[j, 3]
+        s = np.empty(n)
+        top = -math.inf
+        for i in range(n):
+            s[i] = a * buf[i, 0] + b * buf[i, 1] + c * buf[i, 2] + d
+            if s[i] > top or i == 0:
+                top = s[i]
+        if top < 0:
+            return 0
+        m = 0
+        for i in range(n):
+            k = i + 1 if i + 1 < n else 0
+            si, sk = s[i], s[k]
+            if si >= 0:
+                out[m, 0], out[m, 1], out[m, 2] = buf[i, 0], buf[i, 1], buf[i, 2]
+                m += 1
+            if (si >= 0) != (sk >= 0):
+                t = si / (si - sk)
+                out[m, 0] = buf[i, 0] + t * (buf[k, 0] - buf[i, 0])
+                out[m, 1] = buf[i, 1] + t * (buf[k, 1] - buf[i, 1])
+                out[m, 2] = buf[i, 2] + t * (buf[k, 2] - buf[i, 2])
+                m += 1
+        for i in range(m):
+            buf[i, 0], buf[i, 1], buf[i, 2] = out[i, 0], out[i, 1], out[i, 2]
+        n = m
+    return n if n >= 3 else 0
+
+
+def _outline_kernel(P, every, some, first, counts, plane_of, frustum, fx, fy, cx, cy, fixed_scale, near, stride,
+                    grid_h, grid_w, max_range):  # pragma: no cover (compiled)
+    n_polys = first.shape[0]
+    n_planes = frustum.shape[0]
+    # Room for every vertex: a clip against one plane at most doubles a polygon's vertices.
+    cap = 0
+    for k in range(n_polys):
+        if every[k] == 0:
+            cap += counts[k] << min(n_planes, 8) if some[k] != 0 else counts[k]
+    Q = np.empty((max(cap, 1), 3))
+    seg = np.empty(n_polys + 1, np.int64)
+    kept_plane = np.empty(n_polys, np.int64)
+    n_kept = 0
+    rows = 0
+    for k in range(n_polys):
+        if every[k] != 0:
+            continue  # every vertex outside one frustum plane
+        a, cnt = first[k], counts[k]
+        if some[k] == 0:
+            for i in range(cnt):
+                Q[rows + i, 0], Q[rows + i, 1], Q[rows + i, 2] = P[a + i, 0], P[a + i, 1], P[a + i, 2]
+            got = cnt
+        else:
+            size = cnt << min(n_planes, 8)
+            buf = np.empty((size, 3))
+            out = np.empty((size, 3))
+            for i in range(cnt):
+                buf[i, 0], buf[i, 1], buf[i, 2] = P[a + i, 0], P[a + i, 1], P[a + i, 2]
+            got = _clip(buf, cnt, frustum, some[k], out)
+            if got == 0:
+                continue
+            for i in range(got):
+                Q[rows + i, 0], Q[rows + i, 1], Q[rows + i, 2] = buf[i, 0], buf[i, 1], buf[i, 2]
+        seg[n_kept] = rows
+        kept_plane[n_kept] = plane_of[k]
+        n_kept += 1
+        rows += got
+    seg[n_kept] = rows
+    # Full-resolution pixels (depth floored at the near plane, as np.maximum: NaN stays NaN) and
+    # the fixed-point grid pixels fillPoly takes.
+    px = np.empty((rows, 2))
+    fixed = np.empty((rows, 2), np.int32)
+    for i in range(rows):
+        z = Q[i, 2]
+        m = z if (z != z or z >= near) else near
+        u = Q[i, 0] / m
+        u *= fx
+        u += cx
+        v = Q[i, 1] / m
+        v *= fy
+        v += cy
+        px[i, 0] = u
+        px[i, 1] = v
+        fixed[i, 0] = np.int32(np.rint(u * fixed_scale))
+        fixed[i, 1] = np.int32(np.rint(v * fixed_scale))
+    # Per plane: nearest depth and the box around its outlines (kept polygons come by plane).
+    planes = np.empty(n_kept, np.int64)
+    plane_polys = np.empty((n_kept, 2), np.int64)  # first and one past the last kept polygon
+    z_near = np.empty(n_kept)
+    boxes = np.empty((n_kept, 4), np.int64)
+    n_out = 0
+    i = 0
+    while i < n_kept:
+        idx = kept_plane[i]
+        start = i
+        zn = math.inf
+        u0 = math.inf
+        v0 = math.inf
+        u1 = -math.inf
+        v1 = -math.inf
+        while i < n_kept and kept_plane[i] == idx:
+            for r in range(seg[i], seg[i + 1]):
+                z = Q[r, 2]
+                if z < zn:
+                    zn = z
+                if px[r, 0] < u0:
+                    u0 = px[r, 0]
+                if px[r, 1] < v0:
+                    v0 = px[r, 1]
+                if px[r, 0] > u1:
+                    u1 = px[r, 0]
+                if px[r, 1] > v1:
+                    v1 = px[r, 1]
+            i += 1
+        if zn < max_range:
+            planes[n_out] = idx
+            plane_polys[n_out, 0] = start
+            plane_polys[n_out, 1] = i
+            z_near[n_out] = zn
+            boxes[n_out, 0] = max(math.floor(u0 / stride), 0)
+            boxes[n_out, 1] = max(math.floor(v0 / stride), 0)
+            boxes[n_out, 2] = min(math.ceil(u1 / stride), grid_w - 1)
+            boxes[n_out, 3] = min(math.ceil(v1 / stride), grid_h - 1)
+            n_out += 1
+    return px, fixed, seg[:n_kept + 1], planes[:n_out], plane_polys[:n_out], z_near[:n_out], boxes[:n_out]

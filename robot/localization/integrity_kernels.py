@@ -45,7 +45,7 @@ from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 
-from robot.base.kernel_cache import cache_lock, jit_table
+from robot.base.kernel_cache import compile_kernel_set, jit_table
 from robot.localization import fit_kernels
 
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher
@@ -82,17 +82,9 @@ def warm_up() -> float:
         return 0.0
     t0 = time.perf_counter()
     with _lock:
-        if _nb or _failed:
-            return time.perf_counter() - t0
-        try:
-            kernels = _load()
-            with cache_lock():  # no other process of ours writes numba's cache meanwhile
-                _run_each_kernel(kernels)
-            _nb.update(kernels)
-        except Exception as e:
-            _failed = f"the integrity kernels did not compile: {type(e).__name__}: {e}".split("\n")[0]
-            if os.environ.get(fit_kernels.ENV, "auto").strip().lower() == "numba":
-                raise
+        if not (_nb or _failed):
+            _failed = compile_kernel_set(_nb, _load, _run_each_kernel, "the integrity kernels",
+                                         os.environ.get(fit_kernels.ENV, "auto").strip().lower() == "numba")
     return time.perf_counter() - t0
 
 

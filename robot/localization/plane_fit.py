@@ -353,8 +353,14 @@ def _find_surfaces(sub: _Subsample, params: FitParams) -> List[_Surface]:
         if len(pool) < min_pts:
             break
         cols = None if len(pool) == m else pool
-        nh, dh = _global_hypotheses(sub, pool, params.iterations)
-        score = _count_inliers(sub, nh, dh, cols) if len(dh) else np.zeros(0, np.intp)
+        first, first_band = -1, None
+        if cols is None and fit_kernels.backend() == "numba":
+            # The first round in one call (the band of its best with it): what most walls need.
+            nh, dh, score, first, first_band = fit_kernels.first_hypotheses(
+                sub.P, _TABLE, params.iterations, sub.rays32, sub.z32, sub.thr32, sub.rx, sub.ry, sub.y, params)
+        else:
+            nh, dh = _global_hypotheses(sub, pool, params.iterations)
+            score = _count_inliers(sub, nh, dh, cols) if len(dh) else np.zeros(0, np.intp)
         if len(dh) == 0 or 2 * int(score.max()) < len(pool):
             # No surface holds most of what is left: add local hypotheses.
             nl, dl = _local_hypotheses(sub, pool, params.iterations)
@@ -368,8 +374,8 @@ def _find_surfaces(sub: _Subsample, params: FitParams) -> List[_Surface]:
         if not out and score[best] >= m - min_pts:
             # One surface holds nearly everything: the final fit refines it; identification needs
             # it refined only if its admissibility is in doubt (see identify).
-            q = -nh[best] / dh[best]
-            out.append(_Surface(nh[best].copy(), float(dh[best]), _band(sub, q, params), refined=False))
+            band = first_band if best == first else _band(sub, -nh[best] / dh[best], params)
+            out.append(_Surface(nh[best].copy(), float(dh[best]), band, refined=False))
             break
         refined = _refine_surface(sub, nh[best], float(dh[best]), cols, params)
         if refined is None:

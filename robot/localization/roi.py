@@ -30,6 +30,7 @@ import numpy as np
 
 from robot.base.geometry import pose_to_T_ground_robot
 from robot.config import CameraConfig
+from robot.localization import fit_kernels
 from robot.maps.plane_index import BACK_FACE_EPS, PackedPolygons, PlaneIndex, packed_polygons
 from robot.maps.plane_map import PlaneMap
 from robot.maps.visibility import NEAR_PLANE, clip_vertex_list, frustum_planes
@@ -142,6 +143,7 @@ class _GridConstants:
         self.frustum_neg_d = -frustum[:, 3]
         self.bit_weights = 1 << np.arange(len(frustum))
         self.frustum_list: List[List[float]] = frustum.tolist()
+        self.frustum_array = np.ascontiguousarray(frustum, float)
         self.planes_for_bits: Dict[int, List[List[float]]] = {}  # frustum planes by outside-bit set
         self.f_px = np.array([grid.K[0, 0], grid.K[1, 1]])  # (f_x, f_y)
         self.c_px = np.array(grid.K[:2, 2])  # (c_x, c_y)
@@ -224,6 +226,23 @@ def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground
         return []
     # Stack their polygons' vertices, in C.
     polys = _stack_in_camera(pk, facing, T_ground_camera)
+    if fit_kernels.backend() == "numba":
+        found = _outlines_compiled(polys, consts, grid, max_range)
+    else:
+        found = _outlines(polys, consts, grid, max_range)
+    # One view per plane left, with its plane in C.
+    row = {c: r for r, c in enumerate(facing)}
+    planes = plane_map.planes
+    stride = grid.stride
+    return [PlaneView(idx, planes[idx].id, pi_camera[row[idx]], outlines, z_near, box=box,
+                      fixed_px=(stride, fixed_outlines))
+            for idx, outlines, fixed_outlines, z_near, box in found]
+
+
+def _outlines(polys: _StackedPolygons, consts: _GridConstants, grid: CameraGrid, max_range: float
+              ) -> List[Tuple[int, List[np.ndarray], List[np.ndarray], float, Tuple[int, int, int, int]]]:
+    """The planes' outlines, clipped to the frustum and projected (see :func:`_plane_outlines`): the
+    numpy code, the reference of :func:`fit_kernels.outlines`."""
     # Drop the polygons outside the frustum and clip those that cross it.
     clipped = _clip_to_frustum(polys, consts)
     if not clipped.kept:
@@ -232,14 +251,28 @@ def predict_plane_views(plane_map: PlaneMap, candidates: Sequence[int], T_ground
     px = _project(clipped.Q_camera, consts.f_px, consts.c_px)
     fixed = np.rint(px * consts.fixed_scale).astype(np.int32)  # as _fixed_point(px, grid.stride)
     # Gather each plane's outlines, nearest depth and grid box; drop the planes beyond max_range.
-    found = _plane_outlines(polys.plane_of, clipped, px, fixed, grid, max_range)
-    # One view per plane left, with its plane in C.
-    row = {c: r for r, c in enumerate(facing)}
-    planes = plane_map.planes
-    stride = grid.stride
-    return [PlaneView(idx, planes[idx].id, pi_camera[row[idx]], outlines, z_near, box=box,
-                      fixed_px=(stride, fixed_outlines))
-            for idx, outlines, fixed_outlines, z_near, box in found]
+    return _plane_outlines(polys.plane_of, clipped, px, fixed, grid, max_range)
+
+
+def _outlines_compiled(polys: _StackedPolygons, consts: _GridConstants, grid: CameraGrid, max_range: float
+                       ) -> List[Tuple[int, List[np.ndarray], List[np.ndarray], float, Tuple[int, int, int, int]]]:
+    """:func:`_outlines` with its loops compiled (fit_kernels.outlines); the outside-bits stay numpy's."""
+    P = polys.P_camera
+    first_vertex = np.array(polys.first, np.intp)
+    words = (np.einsum("ij,kj->ik", P, consts.frustum_normals) < consts.frustum_neg_d) @ consts.bit_weights
+    every = np.bitwise_and.reduceat(words, first_vertex)
+    some = np.bitwise_or.reduceat(words, first_vertex)
+    h, w = grid.shape
+    px, fixed, seg, planes, plane_polys, z_near, boxes = fit_kernels.outlines(
+        np.ascontiguousarray(P), every.astype(np.int64), some.astype(np.int64), first_vertex.astype(np.int64),
+        np.array(polys.counts, np.int64), np.array(polys.plane_of, np.int64), consts.frustum_array, consts.f_px,
+        consts.c_px, consts.fixed_scale, NEAR_PLANE, grid.stride, h, w, max_range)
+    seg_l = seg.tolist()
+    out = []
+    for idx, (p0, p1), z, box in zip(planes.tolist(), plane_polys.tolist(), z_near.tolist(), boxes.tolist()):
+        out.append((idx, [px[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)],
+                    [fixed[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)], z, tuple(box)))
+    return out
 
 
 @dataclass
@@ -518,3 +551,4 @@ def shrink_rois(views: List[PlaneView], label: np.ndarray, grid: CameraGrid,
             view.roi_rows = view.roi_cols = np.zeros(0, np.intp)
         else:
             view.roi_rows, view.roi_cols = found[:, 0, 1] + (i0 - pad), found[:, 0, 0] + (j0 - pad)
+
