@@ -205,6 +205,7 @@ class Localizer:
         self.keep_roi_labels = False
         self.last_roi_labels: Dict[str, np.ndarray] = {}
         self._geometry: Dict[Tuple, _FrameGeometry] = {}
+        self._geometry_exact: Dict[Tuple, _FrameGeometry] = {}
         self._extent: Dict[int, Tuple[float, float]] = {}
         # Each map plane's normal, offset and heading as Python floats, for the rival-wall check:
         # it runs for every fit over every plane within range (a hundred walls in a floor of alike
@@ -410,7 +411,13 @@ class Localizer:
     # -- one frame ------------------------------------------------------------------------------
 
     def frame_geometry(self, cam: CameraConfig, K: np.ndarray, width: int, height: int) -> _FrameGeometry:
-        key = (cam.name, width, height, tuple(np.round(np.asarray(K).ravel(), 6)))
+        K = np.asarray(K)
+        # Every frame of a camera brings the same K: its bytes find the geometry without rounding.
+        exact = (cam.name, width, height, K.dtype.str, K.tobytes())
+        geo = self._geometry_exact.get(exact)
+        if geo is not None:
+            return geo
+        key = (cam.name, width, height, tuple(np.round(K.ravel(), 6)))
         geo = self._geometry.get(key)
         if geo is None:
             scale = width / float(cam.width)
@@ -420,6 +427,8 @@ class Localizer:
             cols, rows, _, _ = grid.rays
             geo = self._geometry[key] = _FrameGeometry(grid, scale, (nominal / stride) ** 2,
                                                        np.array(cols, float), np.array(rows, float))
+        if len(self._geometry_exact) < 64:  # (a K that changes from frame to frame keeps the rounded key)
+            self._geometry_exact[exact] = geo
         return geo
 
     def _fit_params(self, geo: _FrameGeometry, depth_unit: float, cov: np.ndarray, n_ground: np.ndarray,
