@@ -117,7 +117,7 @@ class ReferenceScorer(_Scorer):
             edge = edges[r_idx, c_idx]
             pis = np.array([views[k].pi_camera for k in label[r_idx, c_idx]])
             ray = np.stack([cols[c_idx], rows[r_idx], np.ones(len(r_idx))], axis=1)
-            denom = np.einsum("ij,ij->i", pis[:, :3], ray)
+            denom = pis[:, 0] * ray[:, 0] + pis[:, 1] * ray[:, 1] + pis[:, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
                 z_pred = -pis[:, 3] / denom
             zm = z[r_idx, c_idx]
@@ -365,3 +365,52 @@ def test_relocalizing_with_the_score_floors_gives_the_answers_without_them(reloc
     # Scores were cut short, in the verification and in the rival scans' fine scores.
     assert sum(1 for coarse, c in cut if c and coarse) > 10 and sum(1 for coarse, c in cut if c and not coarse) > 0
     assert in_full  # and the refinements went below the reach, past entries known only by a bound
+
+
+@pytest.mark.parametrize("name", MAPS)
+def test_the_compiled_pixel_scoring_is_the_numpy_code(relocalizers, name, monkeypatch):
+    """relocalize._pixels compiled (fit_kernels.score_pixels) and in numpy: the same see-through
+    count and the same arrays, to the bit, on cluttered rendered views scored from poses around
+    the truth (walls' edges, neighbours that fit better, returns beyond the range and on the
+    floor), on the fine and the coarse grid."""
+    pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
+    import robot.localization.relocalize as relocalize
+    from robot.localization import fit_kernels
+
+    if fit_kernels.backend() != "numba":
+        pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
+    rel = relocalizers[name]
+    rng = np.random.default_rng(21)
+    calls = []
+    real = relocalize._pixels
+
+    def both(*args):
+        got = real(*args)
+        with monkeypatch.context() as m:
+            m.setattr(fit_kernels, "backend", lambda: "numpy")
+            ref = real(*args)
+        calls.append((got, ref))
+        return got
+
+    monkeypatch.setattr(relocalize, "_pixels", both)
+    for pose in free_space_poses(rel.map, 3, rng, z=0.15):
+        pose = tuple(float(v) for v in pose)
+        scene = SimScene(rel.map, clutter=list(random_site_clutter(rel.map, rng, 4, keep_clear=[pose[:2]])))
+        frames = [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=DepthNoise()) for c in ROBOT.cameras]
+        for stride in (16, 32):
+            scorer = _Scorer(ROBOT, rel.map, [(frames, (0.0, 0.0, 0.0))], rel.index, rel.max_range, stride=stride)
+            for d in [(0.0, 0.0, 0.0)] + [tuple(rng.normal(0, (0.2, 0.2, 0.2))) for _ in range(4)]:
+                for coarse in (False, True):
+                    scorer.score((pose[0] + d[0], pose[1] + d[1], pose[2] + d[2]), coarse=coarse)
+    assert len(calls) > 50
+    moved = 0
+    for (n_got, got), (n_ref, ref) in calls:
+        assert n_got == n_ref
+        assert (got is None) == (ref is None)
+        if got is None:
+            continue
+        assert len(got) == len(ref)
+        for a, b in zip(got, ref):
+            assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+        moved += int(np.count_nonzero(got[3] != got[4]))
+    assert moved > 0  # some pixels were scored on a neighbouring wall

@@ -1,4 +1,5 @@
-"""Compiled kernels for the plane fit's hot loops, and the choice between them and numpy.
+"""Compiled kernels for the plane fit's hot loops (and the relocalizer's pixel scoring), and the
+choice between them and numpy.
 
 The plane fit (:mod:`robot.localization.plane_fit`) spends its time in many small numpy calls on
 a few thousand points or on 3 x 3 matrices: the per-call overhead, not the arithmetic, is their
@@ -21,7 +22,11 @@ cost. Here each of those parts is one numba-compiled function:
   fill that follows stays OpenCV's: its rasterization rules decide which pixels an outline
   takes, and the ROIs, and every relocalization verdict built on the same labels, were measured
   with them. On a floor of alike rooms, where a camera sees a dozen polygons that all cross the
-  frustum's top, this loop was a tenth of a relocalization's CPU.
+  frustum's top, this loop was a tenth of a relocalization's CPU;
+* the relocalizer's per-pixel work of a score (:func:`score_pixels`, ``relocalize._pixels``): the
+  label image's edges, the unscored returns seen through a predicted wall, and each scored
+  pixel's predicted depth, residual and the neighbouring wall it may be taken on instead; the
+  log-likelihoods after it stay numpy's (its exp and log are not libm's on every machine).
 
 The numpy code in ``plane_fit`` stays the reference and the fallback. The kernels repeat its
 arithmetic operation for operation, so they agree with it to the rounding of its sums and
@@ -146,6 +151,7 @@ def set_backend(name: Optional[str]) -> str:
 
 _KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "_inv_kernel", "_summary_kernel",
             "_gather_kernel", "_hypotheses_kernel", "_outline_kernel")
+_NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-point error model
 
 
 def _use_aot() -> bool:
@@ -192,7 +198,10 @@ def jit_kernels() -> Dict[str, Any]:
 
     for fn in (_solve3, _count_inliers, _clip):  # called from the kernels, stay plain Python here
         numba.extending.register_jitable(fn)
-    return jit_table(numba, globals(), _KERNELS)
+    table = jit_table(numba, globals(), _KERNELS)
+    # Where a predicted plane is seen edge-on its depth is a division by zero: inf, as numpy's.
+    table.update(jit_table(numba, globals(), _NUMPY_ERRORS, error_model="numpy"))
+    return table
 
 
 def _compile_once() -> None:
@@ -253,6 +262,12 @@ def _run_each_kernel() -> None:
     depth = np.full((4, 4), 1500, np.uint16)
     idx = np.arange(3, dtype=np.int32)  # the ROI's rows and columns come as int32 (cv2.findNonZero)
     _nb["_gather_kernel"](depth.ravel(), idx, idx, 4, 1, 0.001, 0.2, 10.0, np.zeros(4), np.zeros(4))
+    label = np.array([[0, 0, -1], [0, 1, 1]], np.int32)
+    zz = np.full((2, 3), 2.0)
+    ok = np.ones((2, 3), np.bool_)
+    grid3 = np.linspace(-0.5, 0.5, 3)
+    for free in (None, ~ok):
+        score_pixels(label, np.array([[0.0, 0.0, -1.0, 2.0], [0.1, 0.0, -1.0, 2.1]]), zz, ok, free, grid3, grid3[:2], True)
     # A square in front of a camera that crosses one frustum plane.
     P = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
     one = np.ones(1, np.int64)
@@ -388,6 +403,19 @@ def outlines(P_camera: np.ndarray, every: np.ndarray, some: np.ndarray, first: n
     return _nb["_outline_kernel"](P_camera, every, some, first, counts, plane_of, frustum,
                                   float(f_px[0]), float(f_px[1]), float(c_px[0]), float(c_px[1]), float(fixed_scale),
                                   float(near), int(stride), int(grid_h), int(grid_w), float(max_range))
+
+
+def score_pixels(label: np.ndarray, table: np.ndarray, z: np.ndarray, valid: np.ndarray, free: Optional[np.ndarray],
+                 cols: np.ndarray, rows: np.ndarray, coarse: bool) -> Tuple[int, Optional[Tuple[np.ndarray, ...]]]:
+    """``relocalize._pixels``: (the unscored returns seen through a predicted wall, the scored
+    pixels' arrays or None)."""
+    has_free = free is not None
+    out = _nb["_pixels_kernel"](np.ascontiguousarray(label, np.int32), np.ascontiguousarray(table, np.float64),
+                                _f64(z), np.ascontiguousarray(valid, np.bool_),
+                                np.ascontiguousarray(free if has_free else valid, np.bool_), has_free, _f64(cols),
+                                _f64(rows), bool(coarse))
+    n_free, px = int(out[0]), out[1:]
+    return n_free, (px if len(px[0]) else None)
 
 
 def _probe_fused() -> bool:
@@ -901,3 +929,88 @@ def _outline_kernel(P, every, some, first, counts, plane_of, frustum, fx, fy, cx
             boxes[n_out, 3] = min(math.ceil(v1 / stride), grid_h - 1)
             n_out += 1
     return px, fixed, seg[:n_kept + 1], planes[:n_out], plane_polys[:n_out], z_near[:n_out], boxes[:n_out]
+
+
+def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, coarse):  # pragma: no cover (compiled)
+    """relocalize._pixels: its numpy code's operations pixel by pixel, in its order."""
+    h, w = label.shape
+    edge = np.zeros((h, w), np.bool_)
+    for r in range(h):
+        for c in range(w):
+            k = label[r, c]
+            if (r > 0 and label[r - 1, c] != k) or (r + 1 < h and label[r + 1, c] != k) \
+                    or (c > 0 and label[r, c - 1] != k) or (c + 1 < w and label[r, c + 1] != k):
+                edge[r, c] = True
+    n_free = 0
+    n = 0
+    for r in range(h):
+        for c in range(w):
+            k = label[r, c]
+            if k < 0:
+                continue
+            if valid[r, c]:
+                n += 1
+            elif has_free and free[r, c] and not edge[r, c]:
+                zm = z[r, c]
+                denom = table[k, 0] * cols[c] + table[k, 1] * rows[r] + table[k, 2]
+                z_pred = -table[k, 3] / denom
+                sigma = 0.01 + 0.005 * (zm * zm)
+                if coarse:
+                    sigma = sigma + 0.03 + 0.02 * zm
+                if z_pred > 0.0 and zm - z_pred >= 3.0 * sigma:
+                    n_free += 1
+    r_idx = np.empty(n, np.int64)
+    c_idx = np.empty(n, np.int64)
+    on_edge = np.empty(n, np.bool_)
+    lab = np.empty(n, np.int32)
+    lab_seen = np.empty(n, np.int32)
+    res_own = np.empty(n, np.float64)
+    res = np.empty(n, np.float64)
+    zms = np.empty(n, np.float64)
+    sigmas = np.empty(n, np.float64)
+    denoms = np.empty(n, np.float64)
+    ds = np.empty(n, np.float64)
+    i = 0
+    for r in range(h):
+        for c in range(w):
+            k = label[r, c]
+            if k < 0 or not valid[r, c]:
+                continue
+            zm = z[r, c]
+            denom = table[k, 0] * cols[c] + table[k, 1] * rows[r] + table[k, 2]
+            z_pred = -table[k, 3] / denom
+            sigma = 0.01 + 0.005 * (zm * zm)
+            if coarse:
+                sigma = sigma + 0.03 + 0.02 * zm
+            own = (zm - z_pred) / sigma
+            best = own
+            seen = k
+            if edge[r, c] and not np.isnan(own):
+                # The neighbours up, down, left, right (at the border, the pixel itself): the first
+                # strictly nearer fit of another wall wins, as argmin over (own, the four) picks.
+                size = abs(own)
+                for q in range(4):
+                    rr = min(max(r + (-1 if q == 0 else 1 if q == 1 else 0), 0), h - 1)
+                    cc = min(max(c + (-1 if q == 2 else 1 if q == 3 else 0), 0), w - 1)
+                    kn = label[rr, cc]
+                    if kn < 0 or kn == k:
+                        continue
+                    zp = -table[kn, 3] / (table[kn, 0] * cols[c] + table[kn, 1] * rows[r] + table[kn, 2])
+                    rn = (zm - zp) / sigma
+                    if zp > 0.0 and abs(rn) < size:
+                        size = abs(rn)
+                        best = rn
+                        seen = kn
+            r_idx[i] = r
+            c_idx[i] = c
+            on_edge[i] = edge[r, c]
+            lab[i] = k
+            lab_seen[i] = seen
+            res_own[i] = own
+            res[i] = best
+            zms[i] = zm
+            sigmas[i] = sigma
+            denoms[i] = denom
+            ds[i] = table[k, 3]
+            i += 1
+    return n_free, r_idx, c_idx, on_edge, lab, lab_seen, res_own, res, zms, sigmas, denoms, ds

@@ -52,6 +52,7 @@ from robot.base.errors import InputError
 from robot.base.geometry import compose_se2, compose_se2_jacobians, invert_se2, invert_se2_jacobian, pose_to_T_ground_robot, wrap_angle
 from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, RobotConfig
+from robot.localization import fit_kernels
 from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
 from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
 from robot.maps.plane_index import PlaneIndex
@@ -601,7 +602,7 @@ class _Scorer:
                 grid = CameraGrid(np.asarray(f.K, float), f.depth.shape[1], f.depth.shape[0], stride)
                 z = f.depth_m()[::stride, ::stride].astype(float)
                 h, w = grid.shape
-                z = z[:h, :w]
+                z = np.ascontiguousarray(z[:h, :w])
                 cols, rows, _, _ = grid.rays
                 # Measured points, to tell floor pixels (no information) from the rest.
                 xr = cols[None, :] * z
@@ -672,28 +673,13 @@ class _Scorer:
             # Each view's plane in C, a row per view: a pixel's plane by table lookup (a list of
             # rows built pixel by pixel was a tenth of a relocalization's CPU on a 300-plane map).
             table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
-            edges = None
-            if free is not None:
-                edges = _label_edges(label)
-                n_free = _free_see_through(label, edges, free, table, z, cols, rows, coarse)
-                total += SEE_THROUGH * n_free
-                through += n_free
-                scored += n_free
-            has = (label >= 0) & valid
-            if not has.any():
+            n_free, px = _pixels(label, table, z, valid, free, cols, rows, coarse)
+            total += SEE_THROUGH * n_free
+            through += n_free
+            scored += n_free
+            if px is None:
                 continue
-            r_idx, c_idx = np.nonzero(has)
-            edge = (_label_edges(label) if edges is None else edges)[r_idx, c_idx]
-            lab = label[r_idx, c_idx]
-            pis = table[lab]
-            ray = np.stack([cols[c_idx], rows[r_idx], np.ones(len(r_idx))], axis=1)
-            denom = np.einsum("ij,ij->i", pis[:, :3], ray)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                z_pred = -pis[:, 3] / denom
-            zm = z[r_idx, c_idx]
-            sigma = _depth_sigma(zm, coarse)
-            res_own = (zm - z_pred) / sigma
-            res, lab_seen = _edge_alternatives(label, table, r_idx, c_idx, edge, lab, res_own, zm, sigma, cols, rows)
+            r_idx, c_idx, edge, lab, lab_seen, res_own, res, zm, sigma, denom, d = px
             inlier = np.abs(res) < 3.0
             # Behind a predicted wall's edge is where a depth jump's flying pixels land (between the
             # edge and what lies beyond it): no evidence that the wall is not there.
@@ -706,7 +692,8 @@ class _Scorer:
             agree += int(np.count_nonzero(inlier))
             nearer = res_own < -1.0  # (the offset window decides; a coarse score's sigma is decimetres)
             if nearer.any():
-                in_front.append((views, lab, nearer, zm, ray, denom, pis[:, 3], sigma, ll, inlier))
+                ray = np.stack([cols[c_idx], rows[r_idx], np.ones(len(r_idx))], axis=1)
+                in_front.append((views, lab, nearer, zm, ray, denom, d, sigma, ll, inlier))
                 if floor > -math.inf:
                     # A panel's pixels are any in front (one standing before a neighbouring wall
                     # too), each gaining at most up to its peak.
@@ -1203,6 +1190,36 @@ def _label_edges(label: np.ndarray) -> np.ndarray:
     edge[:, 1:] |= diff_h
     edge[:, :-1] |= diff_h
     return edge
+
+
+def _pixels(label: np.ndarray, table: np.ndarray, z: np.ndarray, valid: np.ndarray, free: Optional[np.ndarray],
+            cols: np.ndarray, rows: np.ndarray, coarse: bool) -> Tuple[int, Optional[Tuple[np.ndarray, ...]]]:
+    """A view's pixels as a score weighs them, from its label image (the row of ``table``, each
+    predicted wall in C, per grid pixel; -1 for none) and the measured depths ``z``: how many of
+    the unscored returns (``free``) lie behind the wall predicted there (:func:`_free_see_through`),
+    and of the scored ones (a wall predicted, ``valid`` depth), in row-major order, None if there
+    are none: (rows, cols, at a wall's edge, own wall, wall scored on (:func:`_edge_alternatives`),
+    residual on the own wall and the one scored, in std; depth, its std, n . ray and d of the own
+    wall). Compiled when the backend is numba (fit_kernels.score_pixels), else numpy (the reference)."""
+    if fit_kernels.backend() == "numba":
+        return fit_kernels.score_pixels(label, table, z, valid, free, cols, rows, coarse)
+    edges = _label_edges(label)
+    n_free = 0 if free is None else _free_see_through(label, edges, free, table, z, cols, rows, coarse)
+    has = (label >= 0) & valid
+    if not has.any():
+        return n_free, None
+    r_idx, c_idx = np.nonzero(has)
+    edge = edges[r_idx, c_idx]
+    lab = label[r_idx, c_idx]
+    pis = table[lab]
+    denom = pis[:, 0] * cols[c_idx] + pis[:, 1] * rows[r_idx] + pis[:, 2]  # n . ray, ray = (x/z, y/z, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_pred = -pis[:, 3] / denom
+    zm = z[r_idx, c_idx]
+    sigma = _depth_sigma(zm, coarse)
+    res_own = (zm - z_pred) / sigma
+    res, lab_seen = _edge_alternatives(label, table, r_idx, c_idx, edge, lab, res_own, zm, sigma, cols, rows)
+    return n_free, (r_idx, c_idx, edge, lab, lab_seen, res_own, res, zm, sigma, denom, pis[:, 3])
 
 
 _NEIGHBOURS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]], np.intp)  # (row, col) steps: up, down, left, right
