@@ -414,3 +414,41 @@ def test_the_compiled_pixel_scoring_is_the_numpy_code(relocalizers, name, monkey
             assert a.dtype == b.dtype and a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
         moved += int(np.count_nonzero(got[3] != got[4]))
     assert moved > 0  # some pixels were scored on a neighbouring wall
+
+
+def test_the_compiled_wall_finder_is_the_numpy_code(monkeypatch):
+    """relocalize._best_line compiled (fit_kernels.best_line) and in numpy: the same count and the
+    same inliers, on floor-plan points of walls, clutter and noise with pairs too close to orient
+    among them; and extract_walls on rendered cluttered frames finds the same walls either way."""
+    pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
+    import robot.localization.relocalize as relocalize
+    from robot.localization import fit_kernels
+
+    if fit_kernels.backend() != "numba":
+        pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
+    rng = np.random.default_rng(4)
+    for k in range(20):
+        n = int(rng.integers(50, 3000))
+        t = rng.uniform(-3.0, 3.0, n)
+        wall = np.stack([t, 0.02 * t + rng.normal(0.0, 0.01, n) + rng.choice([0.0, 1.5], n)], axis=1)
+        pts = np.where(rng.random((n, 1)) < 0.2, rng.uniform(-3.0, 3.0, (n, 2)), wall)
+        pairs = rng.integers(0, n, size=(80, 2))
+        pairs[:5, 1] = pairs[:5, 0]  # a pair of one point: no line
+        tol = 0.01 + 0.004 * np.hypot(pts[:, 0], pts[:, 1]) ** 2
+        got = relocalize._best_line(pts, pairs, tol)
+        with monkeypatch.context() as m:
+            m.setattr(fit_kernels, "backend", lambda: "numpy")
+            ref = relocalize._best_line(pts, pairs, tol)
+        assert got[0] == ref[0] > 0 and np.array_equal(got[1], ref[1])
+    assert relocalize._best_line(np.zeros((3, 2)), np.array([[0, 1], [1, 2]]), np.ones(3)) == (-1, None)
+    arena = load_plane_map("config/maps/fzk_haus_ground.yaml")
+    for pose in free_space_poses(arena, 3, rng, z=0.15):
+        pose = tuple(float(v) for v in pose)
+        scene = SimScene(arena, clutter=list(random_site_clutter(arena, rng, 4, keep_clear=[pose[:2]])))
+        for cam in ROBOT.cameras:
+            frame = render_depth_frame(ROBOT, scene, cam.name, pose, rng=rng, noise=DepthNoise.realistic())
+            got = extract_walls(frame, cam, np.random.default_rng(1))
+            with monkeypatch.context() as m:
+                m.setattr(fit_kernels, "backend", lambda: "numpy")
+                ref = extract_walls(frame, cam, np.random.default_rng(1))
+            assert repr(got) == repr(ref)

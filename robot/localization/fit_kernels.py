@@ -23,6 +23,8 @@ cost. Here each of those parts is one numba-compiled function:
   takes, and the ROIs, and every relocalization verdict built on the same labels, were measured
   with them. On a floor of alike rooms, where a camera sees a dozen polygons that all cross the
   frustum's top, this loop was a tenth of a relocalization's CPU;
+* the relocalizer's wall finder, the inliers of each line through a pair of floor-plan points
+  (:func:`best_line`, ``relocalize._best_line``);
 * the relocalizer's per-pixel work of a score (:func:`score_pixels`, ``relocalize._pixels``): the
   label image's edges, the unscored returns seen through a predicted wall, and each scored
   pixel's predicted depth, residual and the neighbouring wall it may be taken on instead; the
@@ -150,7 +152,7 @@ def set_backend(name: Optional[str]) -> str:
 
 
 _KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "_inv_kernel", "_summary_kernel",
-            "_gather_kernel", "_hypotheses_kernel", "_outline_kernel")
+            "_gather_kernel", "_hypotheses_kernel", "_outline_kernel", "_best_line_kernel")
 _NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-point error model
 
 
@@ -262,6 +264,7 @@ def _run_each_kernel() -> None:
     depth = np.full((4, 4), 1500, np.uint16)
     idx = np.arange(3, dtype=np.int32)  # the ROI's rows and columns come as int32 (cv2.findNonZero)
     _nb["_gather_kernel"](depth.ravel(), idx, idx, 4, 1, 0.001, 0.2, 10.0, np.zeros(4), np.zeros(4))
+    best_line(np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 0.01]]), np.array([[0, 1], [1, 2]], np.int64), np.full(3, 0.02))
     label = np.array([[0, 0, -1], [0, 1, 1]], np.int32)
     zz = np.full((2, 3), 2.0)
     ok = np.ones((2, 3), np.bool_)
@@ -403,6 +406,12 @@ def outlines(P_camera: np.ndarray, every: np.ndarray, some: np.ndarray, first: n
     return _nb["_outline_kernel"](P_camera, every, some, first, counts, plane_of, frustum,
                                   float(f_px[0]), float(f_px[1]), float(c_px[0]), float(c_px[1]), float(fixed_scale),
                                   float(near), int(stride), int(grid_h), int(grid_w), float(max_range))
+
+
+def best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
+    """``relocalize._best_line``: (the count, the inlier mask) of the best line, or (-1, None)."""
+    best, mask = _nb["_best_line_kernel"](_f64(pts), np.ascontiguousarray(pairs, np.int64), _f64(tol))
+    return (int(best), mask) if best >= 0 else (-1, None)
 
 
 def score_pixels(label: np.ndarray, table: np.ndarray, z: np.ndarray, valid: np.ndarray, free: Optional[np.ndarray],
@@ -1014,3 +1023,39 @@ def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, coarse): 
             ds[i] = table[k, 3]
             i += 1
     return n_free, r_idx, c_idx, on_edge, lab, lab_seen, res_own, res, zms, sigmas, denoms, ds
+
+
+def _best_line_kernel(pts, pairs, tol):  # pragma: no cover (compiled)
+    """relocalize._best_line's numpy loop, point by point in its order of operations."""
+    n = pts.shape[0]
+    best = -1
+    best_k = -1
+    for k in range(pairs.shape[0]):
+        a, b = pairs[k, 0], pairs[k, 1]
+        d0 = pts[b, 0] - pts[a, 0]
+        d1 = pts[b, 1] - pts[a, 1]
+        L = math.hypot(d0, d1)
+        if L < 0.1:
+            continue
+        n0 = -d1 / L
+        n1 = d0 / L
+        ax, ay = pts[a, 0], pts[a, 1]
+        cnt = 0
+        for i in range(n):
+            if abs((pts[i, 0] - ax) * n0 + (pts[i, 1] - ay) * n1) < tol[i]:
+                cnt += 1
+        if cnt > best:
+            best = cnt
+            best_k = k
+    mask = np.zeros(n, np.bool_)
+    if best_k >= 0:
+        a, b = pairs[best_k, 0], pairs[best_k, 1]
+        d0 = pts[b, 0] - pts[a, 0]
+        d1 = pts[b, 1] - pts[a, 1]
+        L = math.hypot(d0, d1)
+        n0 = -d1 / L
+        n1 = d0 / L
+        ax, ay = pts[a, 0], pts[a, 1]
+        for i in range(n):
+            mask[i] = abs((pts[i, 0] - ax) * n0 + (pts[i, 1] - ay) * n1) < tol[i]
+    return best, mask

@@ -282,20 +282,9 @@ def extract_walls(frame: DepthFrame, cam: CameraConfig, rng: np.random.Generator
         pts = xy[idx]
         # The tolerance follows the depth noise (~ z^2) with a floor for as-built walls.
         tol = 0.01 + 0.004 * rng_dist[idx] ** 2
-        best, best_in = None, None
         pairs = rng.integers(0, len(pts), size=(80, 2))
-        for a, b in pairs:
-            d = pts[b] - pts[a]
-            L = math.hypot(d[0], d[1])
-            if L < 0.1:
-                continue
-            n = np.array([-d[1], d[0]]) / L
-            r = np.abs((pts - pts[a]) @ n)
-            inl = r < tol
-            cnt = int(np.count_nonzero(inl))
-            if best is None or cnt > best:
-                best, best_in = cnt, inl
-        if best is None or best < min_points:
+        best, best_in = _best_line(pts, pairs, tol)
+        if best < min_points:
             break
         q = pts[best_in]
         # Least-squares line (principal axis), then the inliers again with the refined line.
@@ -336,6 +325,28 @@ def extract_walls(frame: DepthFrame, cam: CameraConfig, rng: np.random.Generator
         angle_std = r_rms * math.sqrt(12.0 / n_eff) / max(float(s_hi - s_lo), 0.2)
         walls.append(ObservedWall(cam.name, n, d, span, len(q), angle_std))
     return walls
+
+
+def _best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
+    """Of the lines through the point pairs ``pairs`` (K, 2) of ``pts`` (N, 2) at least 0.1 m
+    apart, the one with most points within ``tol`` (N,) of it (the first of equal counts): (its
+    count, its inliers), or (-1, None) if no pair is that far apart. Compiled when the backend is
+    numba (fit_kernels.best_line), else numpy (the reference)."""
+    if fit_kernels.backend() == "numba":
+        return fit_kernels.best_line(pts, pairs, tol)
+    best, best_in = -1, None
+    x, y = pts[:, 0], pts[:, 1]
+    for a, b in pairs.tolist():
+        d0, d1 = float(pts[b, 0] - pts[a, 0]), float(pts[b, 1] - pts[a, 1])
+        L = math.hypot(d0, d1)
+        if L < 0.1:
+            continue
+        n0, n1 = -d1 / L, d0 / L
+        inl = np.abs((x - pts[a, 0]) * n0 + (y - pts[a, 1]) * n1) < tol
+        cnt = int(np.count_nonzero(inl))
+        if cnt > best:
+            best, best_in = cnt, inl
+    return best, best_in
 
 
 # -- 2. map walls and hypotheses ------------------------------------------------------------------
