@@ -427,7 +427,7 @@ def test_the_compiled_wall_finder_is_the_numpy_code(monkeypatch):
     if fit_kernels.backend() != "numba":
         pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
     rng = np.random.default_rng(4)
-    for k in range(20):
+    for _ in range(20):
         n = int(rng.integers(50, 3000))
         t = rng.uniform(-3.0, 3.0, n)
         wall = np.stack([t, 0.02 * t + rng.normal(0.0, 0.01, n) + rng.choice([0.0, 1.5], n)], axis=1)

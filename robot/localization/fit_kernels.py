@@ -270,7 +270,8 @@ def _run_each_kernel() -> None:
     ok = np.ones((2, 3), np.bool_)
     grid3 = np.linspace(-0.5, 0.5, 3)
     for free in (None, ~ok):
-        score_pixels(label, np.array([[0.0, 0.0, -1.0, 2.0], [0.1, 0.0, -1.0, 2.1]]), zz, ok, free, grid3, grid3[:2], True)
+        score_pixels(label, np.array([[0.0, 0.0, -1.0, 2.0], [0.1, 0.0, -1.0, 2.1]]), zz, ok, free, grid3, grid3[:2],
+                     (0.01, 0.005, 0.03, 0.02), True)
     # A square in front of a camera that crosses one frustum plane.
     P = np.array([[-1.0, -1.0, 2.0], [1.0, -1.0, 2.0], [1.0, 1.0, 2.0], [-1.0, 1.0, 2.0]])
     one = np.ones(1, np.int64)
@@ -415,14 +416,16 @@ def best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int,
 
 
 def score_pixels(label: np.ndarray, table: np.ndarray, z: np.ndarray, valid: np.ndarray, free: Optional[np.ndarray],
-                 cols: np.ndarray, rows: np.ndarray, coarse: bool) -> Tuple[int, Optional[Tuple[np.ndarray, ...]]]:
+                 cols: np.ndarray, rows: np.ndarray, sigma_terms: Tuple[float, float, float, float],
+                 coarse: bool) -> Tuple[int, Optional[Tuple[np.ndarray, ...]]]:
     """``relocalize._pixels``: (the unscored returns seen through a predicted wall, the scored
-    pixels' arrays or None)."""
+    pixels' arrays or None). ``sigma_terms``: (a, b, c, d) of the depth std a + b z^2, plus
+    c + d z with ``coarse`` (relocalize.DEPTH_SIGMA)."""
     has_free = free is not None
     out = _nb["_pixels_kernel"](np.ascontiguousarray(label, np.int32), np.ascontiguousarray(table, np.float64),
                                 _f64(z), np.ascontiguousarray(valid, np.bool_),
                                 np.ascontiguousarray(free if has_free else valid, np.bool_), has_free, _f64(cols),
-                                _f64(rows), bool(coarse))
+                                _f64(rows), np.array(sigma_terms, np.float64), bool(coarse))
     n_free, px = int(out[0]), out[1:]
     return n_free, (px if len(px[0]) else None)
 
@@ -940,7 +943,7 @@ def _outline_kernel(P, every, some, first, counts, plane_of, frustum, fx, fy, cx
     return px, fixed, seg[:n_kept + 1], planes[:n_out], plane_polys[:n_out], z_near[:n_out], boxes[:n_out]
 
 
-def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, coarse):  # pragma: no cover (compiled)
+def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, sig, coarse):  # pragma: no cover (compiled)
     """relocalize._pixels: its numpy code's operations pixel by pixel, in its order."""
     h, w = label.shape
     edge = np.zeros((h, w), np.bool_)
@@ -959,13 +962,13 @@ def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, coarse): 
                 continue
             if valid[r, c]:
                 n += 1
-            elif has_free and free[r, c] and not edge[r, c]:
+            if has_free and free[r, c] and not edge[r, c]:
                 zm = z[r, c]
                 denom = table[k, 0] * cols[c] + table[k, 1] * rows[r] + table[k, 2]
                 z_pred = -table[k, 3] / denom
-                sigma = 0.01 + 0.005 * (zm * zm)
+                sigma = sig[0] + sig[1] * (zm * zm)
                 if coarse:
-                    sigma = sigma + 0.03 + 0.02 * zm
+                    sigma = sigma + sig[2] + sig[3] * zm
                 if z_pred > 0.0 and zm - z_pred >= 3.0 * sigma:
                     n_free += 1
     r_idx = np.empty(n, np.int64)
@@ -988,9 +991,9 @@ def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, coarse): 
             zm = z[r, c]
             denom = table[k, 0] * cols[c] + table[k, 1] * rows[r] + table[k, 2]
             z_pred = -table[k, 3] / denom
-            sigma = 0.01 + 0.005 * (zm * zm)
+            sigma = sig[0] + sig[1] * (zm * zm)
             if coarse:
-                sigma = sigma + 0.03 + 0.02 * zm
+                sigma = sigma + sig[2] + sig[3] * zm
             own = (zm - z_pred) / sigma
             best = own
             seen = k

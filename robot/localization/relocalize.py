@@ -1213,7 +1213,8 @@ def _pixels(label: np.ndarray, table: np.ndarray, z: np.ndarray, valid: np.ndarr
     residual on the own wall and the one scored, in std; depth, its std, n . ray and d of the own
     wall). Compiled when the backend is numba (fit_kernels.score_pixels), else numpy (the reference)."""
     if fit_kernels.backend() == "numba":
-        return fit_kernels.score_pixels(label, table, z, valid, free, cols, rows, coarse)
+        return fit_kernels.score_pixels(label, table, z, valid, free, cols, rows, DEPTH_SIGMA if coarse else
+                                        DEPTH_SIGMA[:2] + (0.0, 0.0), coarse)
     edges = _label_edges(label)
     n_free = 0 if free is None else _free_see_through(label, edges, free, table, z, cols, rows, coarse)
     has = (label >= 0) & valid
@@ -1324,12 +1325,17 @@ def _free_see_through(label: np.ndarray, edges: np.ndarray, free: np.ndarray, ta
     return int(np.count_nonzero((z_pred > 0.0) & (zm - z_pred >= 3.0 * _depth_sigma(zm, coarse))))
 
 
+# A score's depth std at depth z: A + B z^2, and for a coarse score C + D z more.
+DEPTH_SIGMA = (0.01, 0.005, 0.03, 0.02)
+
+
 def _depth_sigma(zm: np.ndarray, coarse: bool) -> np.ndarray:
     """Depth std (m) a score allows a pixel measured at ``zm``: depth noise plus as-built walls,
     generous on purpose; for a coarse score (a pair hypothesis, centimetres and a degree off) more."""
-    sigma = 0.01 + 0.005 * zm ** 2
+    a, b, c, d = DEPTH_SIGMA
+    sigma = a + b * zm ** 2
     if coarse:
-        sigma = sigma + 0.03 + 0.02 * zm
+        sigma = sigma + c + d * zm
     return sigma
 
 

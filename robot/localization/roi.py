@@ -258,10 +258,7 @@ def _outlines_compiled(polys: _StackedPolygons, consts: _GridConstants, grid: Ca
                        ) -> List[Tuple[int, List[np.ndarray], List[np.ndarray], float, Tuple[int, int, int, int]]]:
     """:func:`_outlines` with its loops compiled (fit_kernels.outlines); the outside-bits stay numpy's."""
     P = polys.P_camera
-    first_vertex = np.array(polys.first, np.intp)
-    words = (np.einsum("ij,kj->ik", P, consts.frustum_normals) < consts.frustum_neg_d) @ consts.bit_weights
-    every = np.bitwise_and.reduceat(words, first_vertex)
-    some = np.bitwise_or.reduceat(words, first_vertex)
+    first_vertex, every, some = _outside_bits(polys, consts)
     h, w = grid.shape
     px, fixed, seg, planes, plane_polys, z_near, boxes = fit_kernels.outlines(
         np.ascontiguousarray(P), every.astype(np.int64), some.astype(np.int64), first_vertex.astype(np.int64),
@@ -322,17 +319,22 @@ def _stack_in_camera(pk: PackedPolygons, planes: List[int], T_ground_camera: np.
     return _StackedPolygons(np.einsum("ij,kj->ik", V, R_T) + t_C, first, counts, plane_of)
 
 
+def _outside_bits(polys: _StackedPolygons, consts: _GridConstants) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each polygon's first row, and the AND and the OR of its vertices' outside-bits: bit j of a
+    vertex's word says it is outside frustum plane j. A polygon is gone when the AND is not 0
+    (all outside one plane); it crosses the planes its OR has."""
+    first_vertex = np.array(polys.first, np.intp)
+    words = (np.einsum("ij,kj->ik", polys.P_camera, consts.frustum_normals) < consts.frustum_neg_d) @ consts.bit_weights
+    return first_vertex, np.bitwise_and.reduceat(words, first_vertex), np.bitwise_or.reduceat(words, first_vertex)
+
+
 def _clip_to_frustum(polys: _StackedPolygons, consts: _GridConstants) -> _ClippedPolygons:
     """Drop the polygons with every vertex outside one frustum plane; clip those that cross some
     plane, against just those planes (Python floats, one by one); keep the others as they are."""
     P = polys.P_camera
     first = polys.first
-    first_vertex = np.array(first, np.intp)
-    # Bit j of a vertex's word: it is outside frustum plane j. A polygon is gone when the AND of
-    # its vertices' words is not 0 (all outside one plane); it crosses the planes its OR has.
-    words = (np.einsum("ij,kj->ik", P, consts.frustum_normals) < consts.frustum_neg_d) @ consts.bit_weights
-    every = np.bitwise_and.reduceat(words, first_vertex).tolist()
-    some = np.bitwise_or.reduceat(words, first_vertex).tolist()
+    first_vertex, every_a, some_a = _outside_bits(polys, consts)
+    every, some = every_a.tolist(), some_a.tolist()
     planes_for = consts.frustum_planes_for
     kept: List[Tuple[int, int]] = []
     clipped_pts: List[List[float]] = []
@@ -551,4 +553,3 @@ def shrink_rois(views: List[PlaneView], label: np.ndarray, grid: CameraGrid,
             view.roi_rows = view.roi_cols = np.zeros(0, np.intp)
         else:
             view.roi_rows, view.roi_cols = found[:, 0, 1] + (i0 - pad), found[:, 0, 0] + (j0 - pad)
-
