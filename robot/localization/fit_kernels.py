@@ -198,7 +198,7 @@ def jit_kernels() -> Dict[str, Any]:
     for an argument type it was not built for)."""
     import numba
 
-    for fn in (_solve3, _count_inliers, _clip):  # called from the kernels, stay plain Python here
+    for fn in (_solve3, _count_inliers, _clip, _wall_depth, _score_std):  # called from the kernels, stay plain Python here
         numba.extending.register_jitable(fn)
     table = jit_table(numba, globals(), _KERNELS)
     # Where a predicted plane is seen edge-on its depth is a division by zero: inf, as numpy's.
@@ -943,6 +943,21 @@ def _outline_kernel(P, every, some, first, counts, plane_of, frustum, fx, fy, cx
     return px, fixed, seg[:n_kept + 1], planes[:n_out], plane_polys[:n_out], z_near[:n_out], boxes[:n_out]
 
 
+def _wall_depth(table, k, x, y):  # pragma: no cover (compiled)
+    """(n . ray, depth) of wall k of ``table`` along the ray (x, y, 1), as relocalize._pixels
+    computes them."""
+    denom = table[k, 0] * x + table[k, 1] * y + table[k, 2]
+    return denom, -table[k, 3] / denom
+
+
+def _score_std(zm, sig, coarse):  # pragma: no cover (compiled)
+    """relocalize._depth_sigma of one depth, with its terms ``sig`` (relocalize.DEPTH_SIGMA)."""
+    sigma = sig[0] + sig[1] * (zm * zm)
+    if coarse:
+        sigma = sigma + sig[2] + sig[3] * zm
+    return sigma
+
+
 def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, sig, coarse):  # pragma: no cover (compiled)
     """relocalize._pixels: its numpy code's operations pixel by pixel, in its order."""
     h, w = label.shape
@@ -964,12 +979,8 @@ def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, sig, coar
                 n += 1
             if has_free and free[r, c] and not edge[r, c]:
                 zm = z[r, c]
-                denom = table[k, 0] * cols[c] + table[k, 1] * rows[r] + table[k, 2]
-                z_pred = -table[k, 3] / denom
-                sigma = sig[0] + sig[1] * (zm * zm)
-                if coarse:
-                    sigma = sigma + sig[2] + sig[3] * zm
-                if z_pred > 0.0 and zm - z_pred >= 3.0 * sigma:
+                z_pred = _wall_depth(table, k, cols[c], rows[r])[1]
+                if z_pred > 0.0 and zm - z_pred >= 3.0 * _score_std(zm, sig, coarse):
                     n_free += 1
     r_idx = np.empty(n, np.int64)
     c_idx = np.empty(n, np.int64)
@@ -989,11 +1000,8 @@ def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, sig, coar
             if k < 0 or not valid[r, c]:
                 continue
             zm = z[r, c]
-            denom = table[k, 0] * cols[c] + table[k, 1] * rows[r] + table[k, 2]
-            z_pred = -table[k, 3] / denom
-            sigma = sig[0] + sig[1] * (zm * zm)
-            if coarse:
-                sigma = sigma + sig[2] + sig[3] * zm
+            denom, z_pred = _wall_depth(table, k, cols[c], rows[r])
+            sigma = _score_std(zm, sig, coarse)
             own = (zm - z_pred) / sigma
             best = own
             seen = k
@@ -1007,7 +1015,7 @@ def _pixels_kernel(label, table, z, valid, free, has_free, cols, rows, sig, coar
                     kn = label[rr, cc]
                     if kn < 0 or kn == k:
                         continue
-                    zp = -table[kn, 3] / (table[kn, 0] * cols[c] + table[kn, 1] * rows[r] + table[kn, 2])
+                    zp = _wall_depth(table, kn, cols[c], rows[r])[1]
                     rn = (zm - zp) / sigma
                     if zp > 0.0 and abs(rn) < size:
                         size = abs(rn)
@@ -1032,7 +1040,7 @@ def _best_line_kernel(pts, pairs, tol):  # pragma: no cover (compiled)
     """relocalize._best_line's numpy loop, point by point in its order of operations."""
     n = pts.shape[0]
     best = -1
-    best_k = -1
+    line = (0.0, 0.0, 0.0, 0.0)  # the best line's normal and point
     for k in range(pairs.shape[0]):
         a, b = pairs[k, 0], pairs[k, 1]
         d0 = pts[b, 0] - pts[a, 0]
@@ -1049,16 +1057,10 @@ def _best_line_kernel(pts, pairs, tol):  # pragma: no cover (compiled)
                 cnt += 1
         if cnt > best:
             best = cnt
-            best_k = k
+            line = (n0, n1, ax, ay)
     mask = np.zeros(n, np.bool_)
-    if best_k >= 0:
-        a, b = pairs[best_k, 0], pairs[best_k, 1]
-        d0 = pts[b, 0] - pts[a, 0]
-        d1 = pts[b, 1] - pts[a, 1]
-        L = math.hypot(d0, d1)
-        n0 = -d1 / L
-        n1 = d0 / L
-        ax, ay = pts[a, 0], pts[a, 1]
+    if best >= 0:
+        n0, n1, ax, ay = line
         for i in range(n):
             mask[i] = abs((pts[i, 0] - ax) * n0 + (pts[i, 1] - ay) * n1) < tol[i]
     return best, mask
