@@ -252,7 +252,7 @@ HOOKS = [
     ("robot.localization.localizer", "fit_plane", "fit: subsample, gates, plane covariance"),
     ("robot.localization.plane_fit", "identify", "hypothesis search (surfaces, scores, refinement)"),
     ("robot.localization.plane_fit", "_solve_step", "refit (weighted least squares)"),
-    ("robot.localization.fit_kernels", "refit_stages", "refit (weighted least squares)"),
+    ("robot.localization.fit_kernels", "fit_tail", "refit (weighted least squares)"),
     ("robot.localization.plane_fit", "_quantisation_cov", "fit: subsample, gates, plane covariance"),
     ("robot.localization.localizer", "Localizer._rival_plane", "rival-wall check"),
     ("robot.localization.localizer", "Localizer._observation", "measurement error model"),

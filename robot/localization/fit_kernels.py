@@ -5,14 +5,19 @@ The plane fit (:mod:`robot.localization.plane_fit`) spends its time in many smal
 a few thousand points or on 3 x 3 matrices: the per-call overhead, not the arithmetic, is their
 cost. Here each of those parts is one numba-compiled function:
 
-* the refit: every stage and iteration of the weighted least squares in inverse depth
-  (``plane_fit._refit`` over ``_solve_step``);
+* the fit after identification, whatever its verdict, in one call (:func:`fit_tail`,
+  ``plane_fit._tail``): every stage and iteration of the weighted least squares in inverse depth
+  (``plane_fit._refit`` over ``_solve_step``), the denser sample's points behind the plane (the
+  rear-most check), the covariance from the normal equations (three 3 x 3 inverses and products)
+  with the depth unit's pattern (``plane_fit._quantisation_cov``), its inverse, and the inlier
+  summary (centroid, depth, spread) with the flatness check's half-patch sums. One call instead
+  of six, and no numpy temporaries between them: a wall's fit crossed from Python to compiled
+  code and back at every step;
 * the hypothesis scoring of identification (``plane_fit._score``), and identification's first
   round in one call: the planes through the fixed table's point triplets, their scores, and the
   inlier band of the best (``plane_fit._global_hypotheses``, ``_score`` and ``_band``);
-* the share of points behind a surface (the first pass of ``plane_fit._behind_points``);
-* the plane's covariance from the normal equations (three 3 x 3 inverses and products);
-* the inlier summary (centroid, depth, spread) and ``plane_fit._not_flat``'s half-patch sums;
+* the share of points behind a surface (the first pass of ``plane_fit._behind_points``), for
+  identification's surfaces;
 * the gather of a wall's ROI: its pixels' depths in metres, those within the range limits and
   their rays (``gather_roi``; its numpy code is the localizer's, kept here beside it);
 * the ROI prediction's geometry (:func:`outlines`): the polygons that cross a frustum plane
@@ -33,7 +38,10 @@ cost. Here each of those parts is one numba-compiled function:
 The numpy code in ``plane_fit`` stays the reference and the fallback. The kernels repeat its
 arithmetic operation for operation, so they agree with it to the rounding of its sums and
 matrix products (1e-15 relative, a 3 x 3 inverse to its condition number times that), a mask
-differs only for a point exactly on a band edge, and counts are the same:
+differs only for a point exactly on a band edge, and counts are the same. One term does not
+follow to that precision: the depth unit's pattern in a fit's covariance takes float32 sines and
+cosines, libm's in a kernel and numpy's own vectorised ones in numpy, which differ in their last
+bit (1e-7 of that term, under 1e-8 of a covariance). Otherwise:
 
 * fastmath is off: elementwise expressions round exactly as numpy's (no reassociation, no
   contraction into fused multiply-adds);
@@ -75,7 +83,7 @@ from robot.base import aot_kernels
 from robot.base.kernel_cache import cache_lock, jit_table
 
 if TYPE_CHECKING:  # plane_fit imports this module
-    from robot.localization.plane_fit import FitParams
+    from robot.localization.plane_fit import FitParams, _Tail
 
 ENV = "ROBOT_KERNELS"
 BACKENDS = ("auto", "aot", "numba", "numpy")
@@ -89,6 +97,7 @@ _compiled = False  # whether every kernel was compiled (or loaded from the cache
 _fused = True  # whether numpy's float32 matrix product chains fused multiply-adds (probed)
 _probe_exact = True  # ... and whether the kernel then rounds exactly as it does
 _NO_COLS = np.zeros(0, np.intp)
+_NO_UP = np.zeros(3)
 
 
 def backend() -> str:
@@ -151,8 +160,8 @@ def set_backend(name: Optional[str]) -> str:
     return _backend
 
 
-_KERNELS = ("_refit_kernel", "_score_kernel", "_behind_kernel", "_cov_kernel", "_inv_kernel", "_summary_kernel",
-            "_gather_kernel", "_hypotheses_kernel", "_outline_kernel", "_best_line_kernel")
+_KERNELS = ("_tail_kernel", "_one_surface_kernel", "_score_kernel", "_behind_kernel", "_gather_kernel",
+            "_hypotheses_kernel", "_outline_kernel", "_best_line_kernel")
 _NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-point error model
 
 
@@ -198,7 +207,9 @@ def jit_kernels() -> Dict[str, Any]:
     for an argument type it was not built for)."""
     import numba
 
-    for fn in (_solve3, _count_inliers, _clip, _wall_depth, _score_std):  # called from the kernels, stay plain Python here
+    # Called from the kernels, they stay plain Python here.
+    for fn in (_solve3, _count_inliers, _clip, _wall_depth, _score_std, _refit, _behind, _plane_cov, _summary, _basis,
+               _quantisation_cov, _hypotheses):
         numba.extending.register_jitable(fn)
     table = jit_table(numba, globals(), _KERNELS)
     # Where a predicted plane is seen edge-on its depth is a division by zero: inf, as numpy's.
@@ -245,7 +256,11 @@ def _run_each_kernel() -> None:
     q = np.array([0.01, -0.02, 0.5])
     y = rx * q[0] + ry * q[1] + q[2] + rng.normal(0.0, 1e-3, n)
     z = 1.0 / y
-    _, H, mask, _, _, _ = _nb["_refit_kernel"](rx, ry, y, q, 2, 1e-6, 1e-7, True, 9.0, 0.004, 2.0, 4.0, 25.0, 4, True)
+    from robot.localization.plane_fit import _TABLE, FitParams
+
+    params = FitParams(depth_unit=0.001)
+    for stride, up, flat in ((2, None, True), (0, np.array([0.0, -1.0, 0.0]), False)):
+        fit_tail(rx, ry, y, z, q, stride, params, up, flat)
     rays = np.ones((3, n), np.float32)
     rays[0], rays[1] = rx, ry
     nh = np.array([[0.0, 0.0, -1.0], [0.1, 0.0, -1.0]], np.float32)
@@ -255,12 +270,8 @@ def _run_each_kernel() -> None:
     table = np.random.default_rng(1).random((3, 16))
     _nb["_hypotheses_kernel"](P, table, 8, rays, z.astype(np.float32), np.full(n, 0.01, np.float32), _fused, rx, ry, y,
                               1e-6, 1e-7, 9.0, 0.004)
-    n_c = np.array([0.0, 0.0, -1.0])
-    _nb["_behind_kernel"](rx, ry, z, 1, n_c, 2.0, 1e-3, 1e-7, True, 0.03)
-    B = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    _nb["_cov_kernel"](H, B, n_c, 2.0, 1.0)
-    _nb["_inv_kernel"](H)
-    _nb["_summary_kernel"](rx, ry, z, mask, 1, B[0], B[1], n_c, 2.0, True)
+    one_surface(rx, ry, z, _TABLE, params)
+    _nb["_behind_kernel"](rx, ry, z, 1, np.array([0.0, 0.0, -1.0]), 2.0, 1e-3, 1e-7, True, 0.03)
     depth = np.full((4, 4), 1500, np.uint16)
     idx = np.arange(3, dtype=np.int32)  # the ROI's rows and columns come as int32 (cv2.findNonZero)
     _nb["_gather_kernel"](depth.ravel(), idx, idx, 4, 1, 0.001, 0.2, 10.0, np.zeros(4), np.zeros(4))
@@ -285,24 +296,30 @@ def _f64(a: np.ndarray) -> np.ndarray:
 
 # -- the kernels' callers: plain arguments in, plane_fit's values out ------------------------------
 
-def refit_stages(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, q: np.ndarray, stride: int, params: FitParams,
-                 with_shift: bool, converged: float, iterations: int
-                 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, float, Optional[Tuple[np.ndarray, np.ndarray]]]:
-    """``plane_fit._refit``: the refit of plane q (inverse depth 1/z = q . (x/z, y/z, 1)) on
-    points with rays (rx, ry) and measured inverse depths y; with ``stride`` >= 2 first on every
-    stride-th point (from the first), then on all; each stage repeats ``_solve_step`` up to
-    ``iterations`` times and stops after a step with step^T H step < ``converged``.
+def fit_tail(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, z: np.ndarray, q: np.ndarray, stride: int,
+             params: FitParams, up: Optional[np.ndarray], flat: bool) -> _Tail:
+    """``plane_fit._tail`` in one call: the refit of plane q (inverse depth 1/z = q . (x/z, y/z, 1))
+    on points with rays (rx, ry), measured inverse depths y and depths z (with ``stride`` >= 2 first
+    on every stride-th point), the dense sample's points behind it, its covariance and information
+    over (theta1, theta2, d) with the depth unit's pattern, and the inlier summary (``flat``: with
+    the flatness check's sums per half). ``up``: the robot's up in the camera frame, or None."""
+    from robot.localization.plane_fit import CONVERGED, STAGE_ITERATIONS, _dense_stride, _Tail
 
-    Returns what the numpy loop leaves: the final q, and of the last solve the information H,
-    the inlier mask, the weighted residual sum of squares and, with ``with_shift``, the arrays
-    (w yp^2, yp), else None."""
+    N = len(z)
     c = params.noise_subpixel / params.noise_fx_b
+    delta = float(params.depth_unit)
+    quantised = delta > 0
     # Constants computed in Python as plane_fit computes them: the same doubles.
-    q_out, H, mask, chi2, u, yp = _nb["_refit_kernel"](
-        _f64(rx), _f64(ry), _f64(y), _f64(q), int(stride), c * c, params.depth_unit**2 / 12.0, params.depth_unit > 0,
-        params.sigma_k**2, float(params.min_threshold), float(params.huber_k), params.huber_k**2, float(converged),
-        int(iterations), bool(with_shift))
-    return q_out, H, mask, chi2, ((u, yp) if with_shift else None)
+    n, d, mask, count, chi2, behind, B, cov_ok, cov, info_ok, info, k_in, sums, hs = _nb["_tail_kernel"](
+        _f64(rx), _f64(ry), _f64(y), _f64(z), _f64(q), int(stride), c * c, delta**2 / 12.0, quantised,
+        params.sigma_k**2, float(params.min_threshold), float(params.huber_k), params.huber_k**2, CONVERGED,
+        STAGE_ITERATIONS, _dense_stride(N, params), c, float(params.behind_margin), max(1, N // (2 * params.sample)),
+        _NO_UP if up is None else _f64(up), up is not None, bool(flat), delta,
+        math.sqrt(0.64 * delta / c) if quantised else 1.0)
+    k_in = int(k_in)
+    return _Tail(n, float(d), mask, int(count), float(chi2), int(behind), B, cov if cov_ok else None,
+                 info if cov_ok and info_ok else None, k_in, sums,
+                 (hs[0], hs[1], hs[2], hs[3], hs[4]) if flat and k_in >= 40 else None)
 
 
 def score(nh: np.ndarray, dh: np.ndarray, rays32: np.ndarray, z32: np.ndarray, thr32: np.ndarray,
@@ -332,6 +349,21 @@ def first_hypotheses(P: np.ndarray, table: np.ndarray, count: int, rays32: np.nd
     return nh, dh, score, int(best), (band if best >= 0 else None)
 
 
+def one_surface(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, table: np.ndarray, params: FitParams
+                ) -> Optional[Tuple[np.ndarray, float]]:
+    """The surface identification finds when one surface holds nearly everything: the subsample
+    (``plane_fit._subsample``), the first round (:func:`first_hypotheses`), and its best when
+    ``plane_fit._find_surfaces`` would stop there with that one surface, unrefined: (n, d), else
+    None (the ROI needs the whole search)."""
+    c = params.noise_subpixel / params.noise_fx_b
+    quantised = params.depth_unit > 0
+    found, n, d = _nb["_one_surface_kernel"](
+        _f64(rx), _f64(ry), _f64(z), max(1, -(-len(z) // params.sample)), c, params.depth_unit**2 / 12.0, quantised,
+        float(params.sigma_k), float(params.min_threshold), table, int(params.iterations), _fused, c * c,
+        params.depth_unit**2 / 12.0 if quantised else 0.0, params.sigma_k**2, float(params.surface_min_fraction))
+    return (n, float(d)) if found else None
+
+
 def behind_count(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, stride: int, n: np.ndarray, d: float,
                  params: FitParams) -> int:
     """How many of every stride-th point (from the first) lie behind the plane (n, d) by more
@@ -339,35 +371,6 @@ def behind_count(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, stride: int, n: 
     return int(_nb["_behind_kernel"](_f64(rx), _f64(ry), _f64(z), int(stride), _f64(n), float(d),
                                      params.noise_subpixel / params.noise_fx_b, params.depth_unit**2 / 12.0,
                                      params.depth_unit > 0, float(params.behind_margin)))
-
-
-def plane_cov(H: np.ndarray, B: np.ndarray, n: np.ndarray, d: float, scale: float
-              ) -> Optional[Tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """``plane_fit.fit_plane``'s covariance of (theta1, theta2, d): (H^-1, Jq^-1,
-    Jq^-1 H^-1 Jq^-T scale) with Jq = [-e1 / d, -e2 / d, n / d^2] (``B`` = (e1, e2)), or None
-    where numpy's inverse raises LinAlgError."""
-    ok, Hi, Jqi, cov = _nb["_cov_kernel"](_f64(H), _f64(B), _f64(n), float(d), float(scale))
-    return (Hi, Jqi, cov) if ok else None
-
-
-def inverse(A: np.ndarray) -> np.ndarray:
-    """np.linalg.inv of a 3 x 3 matrix (LinAlgError if it is singular)."""
-    ok, Ai = _nb["_inv_kernel"](_f64(A))
-    if not ok:
-        raise np.linalg.LinAlgError("Singular matrix")
-    return Ai
-
-
-def inlier_summary(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, mask: np.ndarray, stride: int, h: np.ndarray,
-                   v: np.ndarray, n: np.ndarray, d: float, halves: bool
-                   ) -> Tuple[int, np.ndarray, Optional[Tuple[np.ndarray, ...]]]:
-    """Sums over the inliers among every stride-th point, P = z (rx, ry, 1), a = h . P, b = v . P:
-    (their number k, [sum P (3), sum z^2, sum a, sum a^2, sum b, sum b^2], and with ``halves``
-    and k >= 40 ``plane_fit._not_flat``'s (count, sum a', sum r, sum a'^2, sum a' r) per half,
-    a' = a - median(a) and r = n . P + d, else None)."""
-    k, sums, hs = _nb["_summary_kernel"](_f64(rx), _f64(ry), _f64(z), np.ascontiguousarray(mask, np.bool_), int(stride),
-                                         _f64(h), _f64(v), _f64(n), float(d), bool(halves))
-    return int(k), sums, ((hs[0], hs[1], hs[2], hs[3], hs[4]) if halves and k >= 40 else None)
 
 
 def gather_roi(depth: np.ndarray, rows: np.ndarray, cols: np.ndarray, stride: int, depth_scale: float,
@@ -497,8 +500,8 @@ def _solve3(A, B, X):  # pragma: no cover (compiled)
     return True
 
 
-def _refit_kernel(rx, ry, y, q_in, stride, c2, qvar, quantised, sk2, min_thr, hk, hk2, converged, iterations,
-                  with_shift):  # pragma: no cover (compiled)
+def _refit(rx, ry, y, q_in, stride, c2, qvar, quantised, sk2, min_thr, hk, hk2, converged, iterations,
+           with_shift):  # pragma: no cover (compiled)
     """plane_fit._refit over _solve_step, written out per point (see there for the model)."""
     n = rx.shape[0]
     q0, q1, q2 = q_in[0], q_in[1], q_in[2]
@@ -639,7 +642,7 @@ def _count_inliers(nh, dh, rays, z, thr, cols, all_cols, fused, out):  # pragma:
         out[h] = count
 
 
-def _hypotheses_kernel(P, table, count, rays, z, thr, fused, rx, ry, y, c2, qvar, sk2, min_thr):  # pragma: no cover (compiled)
+def _hypotheses(P, table, count, rays, z, thr, fused, rx, ry, y, c2, qvar, sk2, min_thr):  # pragma: no cover (compiled)
     """plane_fit._global_hypotheses over all m points, _score of each and _band of the first best."""
     m = P.shape[1]
     nh = np.empty((count, 3))
@@ -698,7 +701,51 @@ def _hypotheses_kernel(P, table, count, rays, z, thr, fused, rx, ry, y, c2, qvar
     return nh, dh, score, best, band
 
 
-def _behind_kernel(rx, ry, z, stride, n, d, c, qvar, quantised, margin_min):  # pragma: no cover (compiled)
+def _hypotheses_kernel(P, table, count, rays, z, thr, fused, rx, ry, y, c2, qvar, sk2, min_thr):  # pragma: no cover (compiled)
+    """_hypotheses as a kernel of its own (the first round on a subsample already made)."""
+    return _hypotheses(P, table, count, rays, z, thr, fused, rx, ry, y, c2, qvar, sk2, min_thr)
+
+
+def _one_surface_kernel(rx, ry, z, k, c, unit_var, quantised, sigma_k, min_thr, table, count, fused, c2, qvar, sk2,
+                        min_fraction):  # pragma: no cover (compiled)
+    """plane_fit._subsample, then _find_surfaces' first round and its verdict when the best
+    hypothesis holds all but min_pts of the subsample (see one_surface)."""
+    N = z.shape[0]
+    first = k // 2
+    m = 0 if N <= first else (N - 1 - first) // k + 1
+    P = np.empty((3, m))
+    rays = np.empty((3, m), np.float32)
+    z32 = np.empty(m, np.float32)
+    thr32 = np.empty(m, np.float32)
+    sx = np.empty(m)
+    sy = np.empty(m)
+    sy_inv = np.empty(m)
+    for j in range(m):
+        i = first + j * k
+        x, yy, zz = rx[i], ry[i], z[i]
+        sx[j], sy[j], sy_inv[j] = x, yy, 1.0 / zz
+        P[0, j], P[1, j], P[2, j] = x * zz, yy * zz, 1.0 * zz
+        rays[0, j], rays[1, j], rays[2, j] = np.float32(x), np.float32(yy), np.float32(1.0)
+        z32[j] = np.float32(zz)
+        s = zz * zz * c
+        if quantised:
+            s = np.sqrt(s * s + unit_var)
+        t = sigma_k * s
+        if min_thr > t:
+            t = min_thr
+        thr32[j] = np.float32(t)
+    n = np.zeros(3)
+    min_pts = max(3, int(math.ceil(min_fraction * m)))
+    if m < min_pts:
+        return False, n, 0.0
+    nh, dh, score, best, _ = _hypotheses(P, table, count, rays, z32, thr32, fused, sx, sy, sy_inv, c2, qvar, sk2, min_thr)
+    if best < 0 or 2 * score[best] < m or score[best] < min_pts or score[best] < m - min_pts:
+        return False, n, 0.0
+    n[0], n[1], n[2] = nh[best, 0], nh[best, 1], nh[best, 2]
+    return True, n, dh[best]
+
+
+def _behind(rx, ry, z, stride, n, d, c, qvar, quantised, margin_min):  # pragma: no cover (compiled)
     """plane_fit._behind_points' count before the window: rays that meet the plane in front of
     the camera with depth beyond it by more than max(3 depth_sigma(z_plane), margin_min)."""
     n0, n1, n2 = n[0], n[1], n[2]
@@ -719,7 +766,12 @@ def _behind_kernel(rx, ry, z, stride, n, d, c, qvar, quantised, margin_min):  # 
     return count
 
 
-def _cov_kernel(H, B, n, d, scale):  # pragma: no cover (compiled)
+def _behind_kernel(rx, ry, z, stride, n, d, c, qvar, quantised, margin_min):  # pragma: no cover (compiled)
+    """_behind as a kernel of its own (identification's rear check)."""
+    return _behind(rx, ry, z, stride, n, d, c, qvar, quantised, margin_min)
+
+
+def _plane_cov(H, B, n, d, scale):  # pragma: no cover (compiled)
     """fit_plane's (Hi, Jqi, Jqi @ Hi @ Jqi.T * scale); ok False where numpy raises LinAlgError."""
     eye = np.eye(3)
     Hi = np.zeros((3, 3))
@@ -743,14 +795,11 @@ def _cov_kernel(H, B, n, d, scale):  # pragma: no cover (compiled)
     return True, Hi, Jqi, cov
 
 
-def _inv_kernel(A):  # pragma: no cover (compiled)
-    Ai = np.zeros((3, 3))
-    ok = _solve3(A, np.eye(3), Ai)
-    return ok, Ai
-
-
-def _summary_kernel(rx, ry, z, mask, stride, h, v, n, d, halves):  # pragma: no cover (compiled)
-    """fit_plane's inlier summary and _not_flat's sums per half (see inlier_summary)."""
+def _summary(rx, ry, z, mask, stride, h, v, n, d, halves):  # pragma: no cover (compiled)
+    """Sums over the inliers among every stride-th point, P = z (rx, ry, 1), a = h . P, b = v . P:
+    (their number k, [sum P (3), sum z^2, sum a, sum a^2, sum b, sum b^2], and with ``halves``
+    and k >= 40 plane_fit._half_sums' (count, sum a', sum r, sum a'^2, sum a' r) per half,
+    a' = a - median(a) and r = n . P + d)."""
     h0, h1, h2 = h[0], h[1], h[2]
     v0, v1, v2 = v[0], v[1], v[2]
     n0, n1, n2 = n[0], n[1], n[2]
@@ -790,6 +839,102 @@ def _summary_kernel(rx, ry, z, mask, stride, h, v, n, d, halves):  # pragma: no 
             hs[3, side] += a * a
             hs[4, side] += a * res[j]
     return k, sums, hs
+
+
+def _basis(n):  # pragma: no cover (compiled)
+    """plane_fit._tangent_basis: (2, 3) orthonormal e1, e2 with e1 x e2 = n."""
+    x, y, z = n[0], n[1], n[2]
+    if abs(x) < 0.9:  # e1 = n x (1, 0, 0)
+        e0, e1, e2 = 0.0, z, -y
+    else:  # e1 = n x (0, 1, 0)
+        e0, e1, e2 = -z, 0.0, x
+    k = 1.0 / math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+    a, b, c = e0 * k, e1 * k, e2 * k
+    B = np.empty((2, 3))
+    B[0, 0], B[0, 1], B[0, 2] = a, b, c
+    B[1, 0], B[1, 1], B[1, 2] = y * c - z * b, z * a - x * c, x * b - y * a
+    return B
+
+
+def _quantisation_cov(rx, ry, u, yp, Hi, Jqi, delta, c, z_cut):  # pragma: no cover (compiled)
+    """plane_fit._quantisation_cov. Its float32 sine and cosine are libm's here and numpy's own
+    there, and its exp may be too: the two agree to the float32 rounding of the pattern (1e-7 of
+    this term), not to the bit."""
+    lim = 1.0 / z_cut
+    k_sig = c * math.pi / delta
+    k_amp = delta / math.pi
+    k_phase = 2.0 * math.pi / delta
+    s0 = s1 = s2 = c0 = c1 = c2 = 0.0
+    for i in range(yp.shape[0]):
+        if not yp[i] > lim:
+            continue
+        zp = 1.0 / yp[i]
+        sig = zp * zp * k_sig
+        amp = math.exp(-2.0 * sig * sig) * k_amp * u[i]
+        phase = np.float32(zp * k_phase)
+        ps = amp * np.float64(np.sin(phase))
+        pc = amp * np.float64(np.cos(phase))
+        s0 += ps * rx[i]
+        s1 += ps * ry[i]
+        s2 += ps
+        c0 += pc * rx[i]
+        c1 += pc * ry[i]
+        c2 += pc
+    cov = np.zeros((3, 3))
+    for g0, g1, g2 in ((s0, s1, s2), (c0, c1, c2)):
+        w0 = Hi[0, 0] * g0 + Hi[0, 1] * g1 + Hi[0, 2] * g2
+        w1 = Hi[1, 0] * g0 + Hi[1, 1] * g1 + Hi[1, 2] * g2
+        w2 = Hi[2, 0] * g0 + Hi[2, 1] * g1 + Hi[2, 2] * g2
+        v = np.empty(3)
+        for r in range(3):
+            v[r] = Jqi[r, 0] * w0 + Jqi[r, 1] * w1 + Jqi[r, 2] * w2
+        for r in range(3):
+            for cc in range(3):
+                cov[r, cc] += v[r] * v[cc]
+    return cov / 2.0
+
+
+def _tail_kernel(rx, ry, y, z, q_in, stride, c2, qvar, quantised, sk2, min_thr, hk, hk2, converged, iterations,
+                 dense, c, margin_min, summary_stride, up, has_up, flat, delta, z_cut):  # pragma: no cover (compiled)
+    """plane_fit._tail: refit, behind count, covariance and information, inlier summary."""
+    q, H, mask, chi2, u, yp = _refit(rx, ry, y, q_in, stride, c2, qvar, quantised, sk2, min_thr, hk, hk2, converged,
+                                     iterations, quantised)
+    count = 0
+    for i in range(mask.shape[0]):
+        if mask[i]:
+            count += 1
+    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
+    n = np.empty(3)
+    n[0], n[1], n[2] = -q[0] / qn, -q[1] / qn, -q[2] / qn
+    d = 1.0 / qn
+    behind = _behind(rx, ry, z, dense, n, d, c, qvar, quantised, margin_min)
+    B = _basis(n)
+    red = chi2 / max(count - 3, 1)
+    scale = red if red > 1.0 else 1.0
+    cov_ok, Hi, Jqi, cov = _plane_cov(H, B, n, d, scale)
+    info = np.zeros((3, 3))
+    info_ok = False
+    if cov_ok:
+        if quantised:
+            cov += _quantisation_cov(rx, ry, u, yp, Hi, Jqi, delta, c, z_cut)
+        info_ok = _solve3(cov, np.eye(3), info)
+    h = np.empty(3)
+    if has_up:  # unit(up x n)
+        h[0] = up[1] * n[2] - up[2] * n[1]
+        h[1] = up[2] * n[0] - up[0] * n[2]
+        h[2] = up[0] * n[1] - up[1] * n[0]
+        hn = math.sqrt(h[0] * h[0] + h[1] * h[1] + h[2] * h[2])
+        if hn < 1e-12:
+            hn = 1e-12
+        h /= hn
+    else:
+        h[0], h[1], h[2] = B[0, 0], B[0, 1], B[0, 2]
+    v = np.empty(3)  # n x h
+    v[0] = n[1] * h[2] - n[2] * h[1]
+    v[1] = n[2] * h[0] - n[0] * h[2]
+    v[2] = n[0] * h[1] - n[1] * h[0]
+    k_in, sums, hs = _summary(rx, ry, z, mask, summary_stride, h, v, n, d, flat)
+    return n, d, mask, count, chi2, behind, B, cov_ok, cov, info_ok, info, k_in, sums, hs
 
 
 def _gather_kernel(flat, rows, cols, row_step, stride, scale, zmin, zmax, ray_cols, ray_rows):  # pragma: no cover (compiled)

@@ -419,11 +419,7 @@ def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray,
     Depth farther than the window the prior admits for the wall is not counted: with the pose
     off, a ROI reaches past the wall's top or end to whatever lies far behind it, which says where
     the wall ends, not that the surface in front is clutter (the window evidence weighs that)."""
-    nr = n[0] * rx + n[1] * ry + n[2]
-    hit = nr < -1e-9  # rays that meet the plane in front of the camera
-    z_plane = np.where(hit, -d / np.where(hit, nr, -1.0), 1e3)
-    margin = np.maximum(3.0 * depth_sigma(z_plane, params), params.behind_margin)
-    behind = hit & (z > z_plane + margin)
+    behind = _behind_mask(rx, ry, z, n, d, params)
     m = max(len(z), 1)
     if np.count_nonzero(behind) < matters * m:
         return float(np.count_nonzero(behind)) / m
@@ -439,6 +435,16 @@ def _behind_points(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray,
                                  or _two_surfaces(rx[behind], ry[behind], z[behind], params)):
         return 0.0
     return share
+
+
+def _behind_mask(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, params: FitParams) -> np.ndarray:
+    """Points whose ray meets the plane (n, d) in front of the camera and whose depth lies beyond
+    it by more than the margin (3 depth sigmas there, at least ``behind_margin``)."""
+    nr = n[0] * rx + n[1] * ry + n[2]
+    hit = nr < -1e-9  # rays that meet the plane in front of the camera
+    z_plane = np.where(hit, -d / np.where(hit, nr, -1.0), 1e3)
+    margin = np.maximum(3.0 * depth_sigma(z_plane, params), params.behind_margin)
+    return hit & (z > z_plane + margin)
 
 
 def _thinned_system(rx: np.ndarray, ry: np.ndarray, z: np.ndarray,
@@ -607,15 +613,90 @@ def identify(sub: _Subsample, pi_pred: np.ndarray, params: FitParams) -> _Identi
 
 
 def _rear_most_dense(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarray, d: float, params: FitParams,
-                     pi_pred: np.ndarray) -> Optional[str]:
-    """Why the chosen surface is not the rear-most thing of the ROI on a denser sample (None: it is)."""
-    k = max(1, -(-len(z) // (2 * params.sample)))
-    b = _behind_share(rx, ry, z, k, n, d, pi_pred, params, params.rear_fraction_dense)
-    if b < params.rear_fraction_dense:
+                     pi_pred: np.ndarray, behind: int) -> Optional[str]:
+    """Why the chosen surface is not the rear-most thing of the ROI on a denser sample (None: it is).
+    ``behind``: how many of that sample (every :func:`_dense_stride`-th point) lie behind it by
+    more than the margin, before the prior's window (what the fit's tail counted)."""
+    k = _dense_stride(len(z), params)
+    m = max(-(-len(z) // k), 1)
+    matters = params.rear_fraction_dense
+    b = float(behind) / m
+    if b >= matters:  # a share that matters: the window and the surfaces behind decide (rare)
+        b = _behind_points(rx[::k], ry[::k], z[::k], n, d, pi_pred, params, matters)
+    if b < matters:
         return None
     return (f"{100 * b:.1f} % of the ROI lies behind the rear-most surface the prior admits "
             f"({1000 * (d - float(pi_pred[3])):+.0f} mm from the prediction): it is clutter in front of the wall, and too little "
             "of the wall itself is visible to fit")
+
+
+def _dense_stride(N: int, params: FitParams) -> int:
+    """Every k-th ROI point: twice identification's density, for the rear-most check."""
+    return max(1, -(-N // (2 * params.sample)))
+
+
+@dataclass
+class _Tail:
+    """What the fit computes after identification, whatever its verdict (fit_kernels.fit_tail in
+    one compiled call, :func:`_tail` here): the refitted plane, its inliers, how many of the dense
+    sample lie behind it, its covariance and information over (theta1, theta2, d) (None: a
+    degenerate inlier set), and sums over every k-th inlier."""
+
+    n: np.ndarray
+    d: float
+    mask: np.ndarray
+    count: int
+    chi2: float
+    behind: int
+    basis: np.ndarray
+    cov: Optional[np.ndarray]
+    info: Optional[np.ndarray]
+    k_in: int
+    sums: np.ndarray  # sum P (3), sum z^2, sum a, sum a^2, sum b, sum b^2 (a, b: along h and v)
+    halves: Optional[Tuple[np.ndarray, ...]]  # _flat_verdict's sums per half, or None
+
+
+def _tail(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, z: np.ndarray, q: np.ndarray, stride: int, params: FitParams,
+          up: Optional[np.ndarray], flat: bool) -> _Tail:
+    """The refit of plane q (every ``stride``-th point first, then all), the dense sample's points
+    behind it, its covariance with the depth unit's pattern, and the summary of every k-th inlier
+    (``flat``: with the half-patch sums of the flatness check). The reference of fit_kernels.fit_tail."""
+    N = len(z)
+    q, H, mask, chi2, shift = _refit(rx, ry, y, q, stride, params)
+    count = int(mask.sum())
+    # Written out (not q @ q, BLAS's order): the kernel repeats it to the bit.
+    qn = math.sqrt(float(q[0]) * float(q[0]) + float(q[1]) * float(q[1]) + float(q[2]) * float(q[2]))
+    n, d = -q / qn, 1.0 / qn
+    kb = _dense_stride(N, params)
+    behind = int(np.count_nonzero(_behind_mask(rx[::kb], ry[::kb], z[::kb], n, d, params)))
+    # Information over (theta1, theta2, d), the normal turned towards e1, e2 and the offset:
+    # q = -n / d moves by dq = -(theta1 e1 + theta2 e2) / d + n dd / d^2.
+    B = _tangent_basis(n)
+    # More scatter than the noise model predicts (calibration, unmodelled noise) widens the
+    # covariance; less never narrows it below the model.
+    scale = max(chi2 / max(count - 3, 1), 1.0)
+    Jq = np.column_stack([-B[0] / d, -B[1] / d, n / (d * d)])
+    cov = info = None
+    try:
+        Hi = np.linalg.inv(H)
+        Jqi = np.linalg.inv(Jq)
+        cov = Jqi @ Hi @ Jqi.T * scale
+        if shift is not None:
+            cov += _quantisation_cov(rx, ry, shift[0], shift[1], Hi, Jqi, params)
+        info = np.linalg.inv(cov)
+    except np.linalg.LinAlgError:
+        cov = info = None
+    # What the inliers look like (every k-th of them): where they are, how deep, how wide.
+    h = unit(cross(up, n)) if up is not None else B[0]
+    v = cross(n, h)
+    sl = slice(None, None, max(1, N // (2 * params.sample)))
+    m_s = mask[sl]
+    zs = z[sl][m_s]
+    P_in = np.vstack([rx[sl][m_s] * zs, ry[sl][m_s] * zs, zs])
+    a, b = h @ P_in, v @ P_in
+    sums = np.r_[P_in.sum(axis=1), zs @ zs, a.sum(), a @ a, b.sum(), b @ b]
+    halves = _half_sums(P_in, a, n, d) if flat else None
+    return _Tail(n, d, mask, count, chi2, behind, B, cov, info, P_in.shape[1], sums, halves)
 
 
 def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray, params: FitParams,
@@ -638,7 +719,16 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
             start = None
     surfaces = 0
     if start is None:
-        ident = identify(_subsample(rx, ry, z, params), pi_pred, params)
+        ident = None
+        if fit_kernels.backend() == "numba":
+            # Most walls: one surface holds nearly all of the ROI, and the prior admits it.
+            one = fit_kernels.one_surface(rx, ry, z, _TABLE, params)
+            if one is not None:
+                only = _Surface(one[0], one[1], np.zeros(0, bool), refined=False)
+                if _admissible(only, pi_pred, up, params):
+                    ident = _Identification(only, "ok", "", 1)
+        if ident is None:
+            ident = identify(_subsample(rx, ry, z, params), pi_pred, params)
         surfaces = ident.surfaces
         if ident.surface is None:
             return PlaneFit(False, ident.reason, evidence=ident.evidence, surfaces=surfaces)
@@ -649,17 +739,15 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     k = N // (4 * params.sample) if start is None else 0
     y = 1.0 / z
     q = -n / d
+    flat = start is None  # (a surface kept from the last pass was checked for flatness there, on an overlapping ROI)
     if fit_kernels.backend() == "numba":
-        q, H, mask, chi2, shift = fit_kernels.refit_stages(rx, ry, y, q, k, params, params.depth_unit > 0, CONVERGED,
-                                                           STAGE_ITERATIONS)
+        t = fit_kernels.fit_tail(rx, ry, y, z, q, k, params, up, flat)
     else:
-        q, H, mask, chi2, shift = _refit(rx, ry, y, q, k, params)
-    count = int(mask.sum())
-    qn = math.sqrt(float(q @ q))
-    n, d = -q / qn, 1.0 / qn
+        t = _tail(rx, ry, y, z, q, k, params, up, flat)
+    n, d, count = t.n, t.d, t.count
     # Nothing of a wall's ROI lies behind it: checked on more points than identification saw, with
     # the plane fitted to all of them.
-    why = _rear_most_dense(rx, ry, z, n, d, params, pi_pred)
+    why = _rear_most_dense(rx, ry, z, n, d, params, pi_pred, t.behind)
     if why is not None:
         if start is not None:  # the last pass's surface is not the rear-most one here: identify afresh
             return fit_plane(rx, ry, z, pi_pred, params)
@@ -678,56 +766,16 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
         return PlaneFit(False, f"fit disagrees with the map: normal {math.degrees(ang):.1f} deg (tilt "
                                f"{math.degrees(tilt):.1f} deg), offset {off * 1000:.0f} mm from prediction", n, d, count,
                         angle_to_prediction=ang, offset_to_prediction=off, surfaces=surfaces)
-    # Information over (theta1, theta2, d), the normal turned towards e1, e2 and the offset:
-    # q = -n / d moves by dq = -(theta1 e1 + theta2 e2) / d + n dd / d^2.
-    B = _tangent_basis(n)
-    chi2_red = chi2 / max(count - 3, 1)
-    # More scatter than the noise model predicts (calibration, unmodelled noise) widens the
-    # covariance; less never narrows it below the model.
-    compiled = fit_kernels.backend() == "numba"
-    if compiled:
-        inverses = fit_kernels.plane_cov(H, B, n, d, max(chi2_red, 1.0))
-        if inverses is None:
-            return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
-        Hi, Jqi, cov = inverses
-    else:
-        Jq = np.column_stack([-B[0] / d, -B[1] / d, n / (d * d)])
-        try:
-            Hi = np.linalg.inv(H)
-            Jqi = np.linalg.inv(Jq)
-        except np.linalg.LinAlgError:
-            return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
-        cov = Jqi @ Hi @ Jqi.T * max(chi2_red, 1.0)
-    if shift is not None:
-        cov += _quantisation_cov(rx, ry, shift[0], shift[1], Hi, Jqi, params)
-    info = fit_kernels.inverse(cov) if compiled else np.linalg.inv(cov)
-    # What the inliers look like (every k-th of them): where they are, how deep, how wide.
-    k_sl = max(1, N // (2 * params.sample))
-    if up is not None:
-        h = unit(cross(up, n))
-    else:
-        h = B[0]
-    v = cross(n, h)
-    # (A surface kept from the last pass was checked for flatness there, on an overlapping ROI.)
-    if compiled:
-        k_in, sums, halves = fit_kernels.inlier_summary(rx, ry, z, mask, k_sl, h, v, n, d, start is None)
-        centroid = sums[:3] / k_in
-        z2 = float(sums[3]) / k_in
-        sa, saa, sb, sbb = float(sums[4]), float(sums[5]), float(sums[6]), float(sums[7])
-        why = None if halves is None else _flat_verdict(*halves, n, z2, params)
-    else:
-        sl = slice(None, None, k_sl)
-        m_s = mask[sl]
-        zs = z[sl][m_s]
-        P_in = np.vstack([rx[sl][m_s] * zs, ry[sl][m_s] * zs, zs])
-        k_in = P_in.shape[1]
-        centroid = P_in.sum(axis=1) / k_in
-        z2 = float(zs @ zs) / k_in
-        a, b = h @ P_in, v @ P_in
-        sa, saa, sb, sbb = float(a.sum()), float(a @ a), float(b.sum()), float(b @ b)
-        why = _not_flat(P_in, a, n, d, z2, params) if start is None else None
+    if t.cov is None:
+        return PlaneFit(False, "degenerate inlier set (all points on a line)", n, d, count)
+    chi2_red = t.chi2 / max(count - 3, 1)
+    k_in, sums = t.k_in, t.sums
+    centroid = sums[:3] / k_in
+    z2 = float(sums[3]) / k_in
+    sa, saa, sb, sbb = float(sums[4]), float(sums[5]), float(sums[6]), float(sums[7])
     lateral = math.sqrt(max(saa / k_in - (sa / k_in) ** 2, 0.0))
     vertical = math.sqrt(max(sbb / k_in - (sb / k_in) ** 2, 0.0))
+    why = None if t.halves is None else _flat_verdict(*t.halves, n, z2, params)
     if why is not None:
         return PlaneFit(False, why, n, d, count, angle_to_prediction=ang, offset_to_prediction=off, surfaces=surfaces)
     if up is not None:
@@ -743,19 +791,18 @@ def fit_plane(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, pi_pred: np.ndarray
     # fit is a little under 1: the band and the Huber loss trim its tails.)
     sig_n = depth_sigma_scalar(math.sqrt(z2), params) * abs(float(n[2]))
     excess = max(chi2_red - 1.1, 0.0) * sig_n * sig_n
-    return PlaneFit(True, "ok", n, d, count, mask, info, cov, B, math.sqrt(chi2_red), ang, off, "", surfaces, excess,
-                    centroid, z2, lateral, vertical)
+    return PlaneFit(True, "ok", n, d, count, t.mask, t.info, t.cov, t.basis, math.sqrt(chi2_red), ang, off, "",
+                    surfaces, excess, centroid, z2, lateral, vertical)
 
 
 FLAT_SLOPE = math.radians(0.5)  # what a built wall's bow may turn one half of a patch against the other
 
 
-def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: float, params: FitParams) -> Optional[str]:
-    """Why the inliers are not one flat surface (None: they are). Where another surface meets the
-    wall at a small angle (a door swung back against it, a board leaning on it), the inlier band
-    takes both and the fit settles between them: the two halves of the patch along the wall then
-    slope against the plane in opposite directions, by far more than noise, the matcher's
-    systematic error and a bow explain."""
+def _half_sums(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float) -> Optional[Tuple[np.ndarray, ...]]:
+    """The flatness check's sums per half of the patch along the wall (None under 40 inliers).
+    Where another surface meets the wall at a small angle (a door swung back against it, a board
+    leaning on it), the inlier band takes both and the fit settles between them: the two halves
+    of the patch then slope against the plane in opposite directions (:func:`_flat_verdict`)."""
     k = P_in.shape[1]
     if k < 40:
         return None
@@ -766,13 +813,15 @@ def _not_flat(P_in: np.ndarray, along: np.ndarray, n: np.ndarray, d: float, z2: 
     cnt = np.bincount(side, minlength=2).astype(float)
     sa, sr = np.bincount(side, a, 2), np.bincount(side, res, 2)
     saa, sar = np.bincount(side, a * a, 2), np.bincount(side, a * res, 2)
-    return _flat_verdict(cnt, sa, sr, saa, sar, n, z2, params)
+    return cnt, sa, sr, saa, sar
 
 
 def _flat_verdict(cnt: np.ndarray, sa: np.ndarray, sr: np.ndarray, saa: np.ndarray, sar: np.ndarray, n: np.ndarray,
                   z2: float, params: FitParams) -> Optional[str]:
-    """:func:`_not_flat` from its sums per half (2,) each: the count, and the sums of a, the
-    residual r, a^2 and a r, with a the position along the wall from the median."""
+    """Why the inliers are not one flat surface (None: they are), from :func:`_half_sums`: per
+    half (2,) each, the count, and the sums of a, the residual r, a^2 and a r, with a the position
+    along the wall from the median. The halves may turn against each other by a built wall's bow
+    plus what noise and the matcher's systematic error explain."""
     if cnt.min() < 20:
         return None
     var = saa / cnt - (sa / cnt) ** 2
