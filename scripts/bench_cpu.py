@@ -249,11 +249,12 @@ HOOKS = [
     ("robot.localization.localizer", "Localizer._fit_frame", "gather ROI depth and rays, per-wall bookkeeping"),
     ("robot.localization.localizer", "Localizer.plane_rois", "ROI prediction (visibility, raster, erosion)"),
     ("robot.localization.localizer", "Localizer._fit_params", "gather ROI depth and rays, per-wall bookkeeping"),
-    ("robot.localization.localizer", "fit_plane", "fit: subsample, gates, plane covariance"),
+    ("robot.localization.localizer", "fit_plane", "fit: subsample, gates, verdicts"),
     ("robot.localization.plane_fit", "identify", "hypothesis search (surfaces, scores, refinement)"),
-    ("robot.localization.plane_fit", "_solve_step", "refit (weighted least squares)"),
-    ("robot.localization.fit_kernels", "fit_tail", "refit (weighted least squares)"),
-    ("robot.localization.plane_fit", "_quantisation_cov", "fit: subsample, gates, plane covariance"),
+    ("robot.localization.fit_kernels", "one_surface", "hypothesis search (surfaces, scores, refinement)"),
+    ("robot.localization.plane_fit", "_solve_step", "refit, covariance, inlier summary"),
+    ("robot.localization.fit_kernels", "fit_tail", "refit, covariance, inlier summary"),
+    ("robot.localization.plane_fit", "_tail", "refit, covariance, inlier summary"),
     ("robot.localization.localizer", "Localizer._rival_plane", "rival-wall check"),
     ("robot.localization.localizer", "Localizer._observation", "measurement error model"),
     ("robot.localization.localizer", "Localizer._solve", "pose solve and integrity checks"),
@@ -262,7 +263,7 @@ HOOKS = [
 ]
 # Calls made from inside these steps stay with them: the hypothesis search refines its surfaces
 # with the same least-squares step as the refit.
-INHERIT = {"refit (weighted least squares)": {"hypothesis search (surfaces, scores, refinement)"}}
+INHERIT = {"refit, covariance, inlier summary": {"hypothesis search (surfaces, scores, refinement)"}}
 STEP_ORDER = []
 for _h in HOOKS:
     if _h[2] not in STEP_ORDER:

@@ -822,19 +822,22 @@ def _flat_verdict(cnt: np.ndarray, sa: np.ndarray, sr: np.ndarray, saa: np.ndarr
     half (2,) each, the count, and the sums of a, the residual r, a^2 and a r, with a the position
     along the wall from the median. The halves may turn against each other by a built wall's bow
     plus what noise and the matcher's systematic error explain."""
-    if cnt.min() < 20:
+    # In floats: two halves are not worth numpy's per-call cost (the same roundings).
+    (c0, c1), (a0, a1), (r0, r1) = cnt.tolist(), sa.tolist(), sr.tolist()
+    (aa0, aa1), (ar0, ar1) = saa.tolist(), sar.tolist()
+    if min(c0, c1) < 20:
         return None
-    var = saa / cnt - (sa / cnt) ** 2
-    if var.min() <= 1e-8:
+    var0, var1 = aa0 / c0 - (a0 / c0) * (a0 / c0), aa1 / c1 - (a1 / c1) * (a1 / c1)
+    if min(var0, var1) <= 1e-8:
         return None
-    slopes = (sar / cnt - sa * sr / (cnt * cnt)) / var
-    spreads, counts = np.sqrt(var), cnt
+    slope0, slope1 = (ar0 / c0 - a0 * r0 / (c0 * c0)) / var0, (ar1 / c1 - a1 * r1 / (c1 * c1)) / var1
+    sp0, sp1 = math.sqrt(var0), math.sqrt(var1)
     sigma = depth_sigma_scalar(math.sqrt(z2), params) * abs(float(n[2]))
     sys_z = params.systematic_px / params.noise_fx_b * z2 * abs(float(n[2]))
     # Samples are several matcher windows apart: nearly independent (allow 1.5 times their spread).
-    noise = math.hypot(*(1.5 * sigma / (math.sqrt(c) * sp) for c, sp in zip(counts, spreads)))
-    allowed = FLAT_SLOPE + 3.0 * noise + 2.0 * sys_z / max(float(spreads.min()), 0.05)
-    turn = abs(math.atan(float(slopes[0])) - math.atan(float(slopes[1])))
+    noise = math.hypot(1.5 * sigma / (math.sqrt(c0) * sp0), 1.5 * sigma / (math.sqrt(c1) * sp1))
+    allowed = FLAT_SLOPE + 3.0 * noise + 2.0 * sys_z / max(min(sp0, sp1), 0.05)
+    turn = abs(math.atan(slope0) - math.atan(slope1))
     if turn <= allowed:
         return None
     return (f"not one flat surface: its two halves along the wall turn {math.degrees(turn):.1f} deg against each "
