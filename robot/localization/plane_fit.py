@@ -850,7 +850,7 @@ def _refit(rx: np.ndarray, ry: np.ndarray, y: np.ndarray, q: np.ndarray, stride:
     first on every stride-th point, then on all, each stage a few :func:`_solve_step` until one
     moves the plane by under ``CONVERGED``. Returns the final q and the last solve's (H, inlier
     mask, chi2, shift), the shift arrays when the frame has a depth unit. The reference of
-    fit_kernels.refit_stages."""
+    fit_kernels.fit_tail (with the rest of the tail)."""
     stages = [(rx[::stride], ry[::stride], y[::stride])] if stride >= 2 else []
     stages.append((rx, ry, y))
     for i, (sx, sy, sinv) in enumerate(stages):
