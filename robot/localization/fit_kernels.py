@@ -719,11 +719,11 @@ def _one_surface_kernel(rx, ry, z, k, c, unit_var, quantised, sigma_k, min_thr, 
     thr32 = np.empty(m, np.float32)
     sx = np.empty(m)
     sy = np.empty(m)
-    sy_inv = np.empty(m)
+    sinv = np.empty(m)
     for j in range(m):
         i = first + j * k
         x, yy, zz = rx[i], ry[i], z[i]
-        sx[j], sy[j], sy_inv[j] = x, yy, 1.0 / zz
+        sx[j], sy[j], sinv[j] = x, yy, 1.0 / zz
         P[0, j], P[1, j], P[2, j] = x * zz, yy * zz, 1.0 * zz
         rays[0, j], rays[1, j], rays[2, j] = np.float32(x), np.float32(yy), np.float32(1.0)
         z32[j] = np.float32(zz)
@@ -738,7 +738,7 @@ def _one_surface_kernel(rx, ry, z, k, c, unit_var, quantised, sigma_k, min_thr, 
     min_pts = max(3, int(math.ceil(min_fraction * m)))
     if m < min_pts:
         return False, n, 0.0
-    nh, dh, score, best, _ = _hypotheses(P, table, count, rays, z32, thr32, fused, sx, sy, sy_inv, c2, qvar, sk2, min_thr)
+    nh, dh, score, best, _ = _hypotheses(P, table, count, rays, z32, thr32, fused, sx, sy, sinv, c2, qvar, sk2, min_thr)
     if best < 0 or 2 * score[best] < m or score[best] < min_pts or score[best] < m - min_pts:
         return False, n, 0.0
     n[0], n[1], n[2] = nh[best, 0], nh[best, 1], nh[best, 2]

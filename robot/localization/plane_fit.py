@@ -401,12 +401,14 @@ def _behind(sub: _Subsample, n: np.ndarray, d: float, pi_pred: np.ndarray, param
 
 
 def _behind_share(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, stride: int, n: np.ndarray, d: float,
-                  pi_pred: np.ndarray, params: FitParams, matters: float) -> float:
+                  pi_pred: np.ndarray, params: FitParams, matters: float, count: Optional[int] = None) -> float:
     """:func:`_behind_points` of every stride-th point; its first pass compiled when the kernels are
-    (the rest, for a share that matters, is rare)."""
-    if fit_kernels.backend() == "numba":
-        m = max(-(-len(z) // stride), 1)
+    (the rest, for a share that matters, is rare). ``count``: that first pass's count, where the
+    caller has it already (the fit's tail counts it)."""
+    if count is None and fit_kernels.backend() == "numba":
         count = fit_kernels.behind_count(rx, ry, z, stride, n, d, params)
+    if count is not None:
+        m = max(-(-len(z) // stride), 1)
         if count < matters * m:
             return float(count) / m
     return _behind_points(rx[::stride], ry[::stride], z[::stride], n, d, pi_pred, params, matters)
@@ -617,13 +619,9 @@ def _rear_most_dense(rx: np.ndarray, ry: np.ndarray, z: np.ndarray, n: np.ndarra
     """Why the chosen surface is not the rear-most thing of the ROI on a denser sample (None: it is).
     ``behind``: how many of that sample (every :func:`_dense_stride`-th point) lie behind it by
     more than the margin, before the prior's window (what the fit's tail counted)."""
-    k = _dense_stride(len(z), params)
-    m = max(-(-len(z) // k), 1)
-    matters = params.rear_fraction_dense
-    b = float(behind) / m
-    if b >= matters:  # a share that matters: the window and the surfaces behind decide (rare)
-        b = _behind_points(rx[::k], ry[::k], z[::k], n, d, pi_pred, params, matters)
-    if b < matters:
+    b = _behind_share(rx, ry, z, _dense_stride(len(z), params), n, d, pi_pred, params, params.rear_fraction_dense,
+                      behind)
+    if b < params.rear_fraction_dense:
         return None
     return (f"{100 * b:.1f} % of the ROI lies behind the rear-most surface the prior admits "
             f"({1000 * (d - float(pi_pred[3])):+.0f} mm from the prediction): it is clutter in front of the wall, and too little "
