@@ -25,7 +25,7 @@ from drivers.sim.building import free_space_poses
 from robot.base.geometry import pose_to_T_ground_robot
 from robot.config import load_robot_config
 from robot.localization.localizer import Localizer, coarse_covariance
-from robot.localization.roi import CameraGrid, PlaneView, camera_views, predict_plane_views, rasterize_views, shrink_rois
+from robot.localization.roi import CameraGrid, PlaneView, camera_views, predict_plane_views, predict_views, rasterize_views, shrink_rois
 from robot.maps.plane_index import BACK_FACE_EPS, PlaneIndex, packed_polygons
 from robot.maps.plane_map import load_plane_map
 from robot.maps.visibility import NEAR_PLANE
@@ -216,14 +216,10 @@ def ref_shrink(views: List[PlaneView], label: np.ndarray, grid: CameraGrid, marg
             view.roi_rows, view.roi_cols = found[:, 0, 1] + (i0 - pad), found[:, 0, 0] + (j0 - pad)
 
 
-class _RefIndex:
-    """The localizer's index with the reference in_view."""
-
-    def __init__(self, index: PlaneIndex):
-        self.index = index
-
-    def in_view(self, T_ground_camera, frustum, max_range):
-        return ref_in_view(self.index, T_ground_camera, frustum, max_range)
+def ref_predict_views(plane_map, index, T_ground_camera, grid, max_range) -> List[PlaneView]:
+    """roi.predict_views written plainly: the reference in_view, then the reference prediction."""
+    return ref_predict(plane_map, ref_in_view(index, T_ground_camera, grid.frustum, max_range), T_ground_camera, grid,
+                       max_range)
 
 
 # -- comparing -------------------------------------------------------------------------------------
@@ -253,10 +249,9 @@ def assert_same_views(got: List[PlaneView], ref: List[PlaneView], where) -> None
 def reference_plane_rois(loc: Localizer, geo, T_ground_camera, cov, monkeypatch) -> List[PlaneView]:
     """What Localizer.plane_rois gives with the reference stage in place of roi.py's and the index's."""
     with monkeypatch.context() as m:
-        m.setattr(localizer_module, "predict_plane_views", ref_predict)
+        m.setattr(localizer_module, "predict_views", ref_predict_views)
         m.setattr(localizer_module, "rasterize_views", ref_rasterize)
         m.setattr(localizer_module, "shrink_rois", ref_shrink)
-        m.setattr(loc, "index", _RefIndex(loc.index))
         return loc.plane_rois(geo, T_ground_camera, cov)
 
 
@@ -319,6 +314,7 @@ def test_stages_identical_to_reference(name, seed, stride):
                 got = predict_plane_views(plane_map, cands, T, grid, MAX_RANGE)
                 ref = ref_predict(plane_map, cands, T, grid, MAX_RANGE)
                 assert_same_views(got, ref, where)
+                assert_same_views(predict_views(plane_map, index, T, grid, MAX_RANGE), ref, where)
                 if k % 3 == 0:  # also views whose box is yet unknown
                     for v in got + ref:
                         v.box = None
@@ -454,3 +450,45 @@ def test_the_compiled_outlines_are_the_numpy_outlines(name):
                 clipped += sum(1 for k, j in c.kept if j != k)
                 kept += len(ref)
     assert kept > 100 and clipped > 50  # the views held planes, and many polygons were clipped
+
+
+@pytest.mark.parametrize("name", ["room_grid", "institute_ground", "paper_arena", "fzk_haus_ground"])
+def test_the_compiled_views_are_in_view_then_predict(name):
+    """fit_kernels.views (in_view's cull, the facing test, the polygons moved into C, their
+    outside-bits and outlines in one call) gives the views of in_view then predict_plane_views
+    on the numpy code, to the bit: the same planes in the same order, their planes in C, outlines,
+    fixed-point outlines, nearest depths and boxes. Poses anywhere in and around a floor of
+    alike rooms (its cells hold a dozen polygons), two buildings and the arena, outside them too;
+    the relocalizer's coarse grid, the localizer's and a padded one; two ranges."""
+    pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
+    from drivers.sim.building import grid_for_planes, room_grid_map
+    from robot.localization import fit_kernels
+
+    if fit_kernels.backend() != "numba":
+        pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy): predict_views is in_view then predict there")
+    if name == "room_grid":
+        plane_map = room_grid_map(*grid_for_planes(288), seed=288)
+        rng = np.random.default_rng(19)
+        lo, hi = plane_map.bounds()
+        poses = [(float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
+                 for x, y in rng.uniform(lo[:2] - 0.5, hi[:2] + 0.5, (40, 2))]
+    else:
+        plane_map, poses = plane_map_and_poses(name, 40, 16)
+    index = PlaneIndex(plane_map)
+    views = empty = 0
+    for cam in ROBOT.cameras:
+        K = cam.intrinsics_from_fov()
+        for stride, pad in ((32, 0), (4, 0), (4, 6)):
+            Kp = K.copy()
+            Kp[:2, 2] += pad * stride
+            grid = CameraGrid(Kp, cam.width + 2 * pad * stride, cam.height + 2 * pad * stride, stride)
+            for pose in poses:
+                T = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
+                for max_range in (MAX_RANGE, 10.0):
+                    cands = index.in_view(T, grid.frustum, max_range)
+                    ref = predict_plane_views(plane_map, cands, T, grid, max_range) if cands else []
+                    got = predict_views(plane_map, index, T, grid, max_range)
+                    assert_same_views(got, ref, (name, pose, cam.name, stride, pad, max_range))
+                    views += len(ref)
+                    empty += not ref
+    assert views > 300 and empty > 0  # planes were seen, and some poses saw none (outside, facing away)

@@ -161,7 +161,7 @@ def set_backend(name: Optional[str]) -> str:
 
 
 _KERNELS = ("_tail_kernel", "_one_surface_kernel", "_score_kernel", "_behind_kernel", "_gather_kernel",
-            "_hypotheses_kernel", "_outline_kernel", "_best_line_kernel")
+            "_hypotheses_kernel", "_outline_kernel", "_views_kernel", "_best_line_kernel")
 _NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-point error model
 
 
@@ -209,7 +209,7 @@ def jit_kernels() -> Dict[str, Any]:
 
     # Called from the kernels, they stay plain Python here.
     for fn in (_solve3, _count_inliers, _clip, _wall_depth, _score_std, _refit, _behind, _plane_cov, _summary, _basis,
-               _quantisation_cov, _hypotheses):
+               _quantisation_cov, _hypotheses, _outlines_of):
         numba.extending.register_jitable(fn)
     table = jit_table(numba, globals(), _KERNELS)
     # Where a predicted plane is seen edge-on its depth is a division by zero: inf, as numpy's.
@@ -288,6 +288,13 @@ def _run_each_kernel() -> None:
     one = np.ones(1, np.int64)
     outlines(P, one * 0, one * 2, one * 0, one * 4, one * 0, np.array([[0.0, 0.0, 1.0, -0.01], [1.0, 0.0, 0.0, 0.5]]),
              np.array([100.0, 100.0]), np.array([50.0, 50.0]), 4.0, 0.01, 4, 25, 25, 6.0)
+    # The same square as a one-plane map (a wall 2 m ahead, facing the camera), seen from the origin.
+    frustum = np.array([[0.0, 0.0, 1.0, -0.01], [1.0, 0.0, 0.0, 0.5]])
+    cells = (-1.0, -1.0, 2.0, 1, 1, np.array([0, 1], np.int64), np.zeros(1, np.int64))
+    views(np.eye(4), np.zeros((8, 3)), np.vstack([frustum, [[0.0, 0.0, -1.0, 6.0]]]), cells,
+          np.array([[0.0, 0.0, 2.0, 1.0, 1.0, 0.0]]), np.zeros(1, np.int64), np.array([[0.0, 0.0, -1.0, 2.0]]),
+          np.array([0, 1], np.int64), P, np.array([0, 4], np.int64), frustum, np.array([100.0, 100.0]),
+          np.array([50.0, 50.0]), 4.0, 0.01, 4, 25, 25, 6.0, 1e-6, 1e-9)
 
 
 def _f64(a: np.ndarray) -> np.ndarray:
@@ -410,6 +417,28 @@ def outlines(P_camera: np.ndarray, every: np.ndarray, some: np.ndarray, first: n
     return _nb["_outline_kernel"](P_camera, every, some, first, counts, plane_of, frustum,
                                   float(f_px[0]), float(f_px[1]), float(c_px[0]), float(c_px[1]), float(fixed_scale),
                                   float(near), int(stride), int(grid_h), int(grid_w), float(max_range))
+
+
+def views(T_ground_camera: np.ndarray, corners: np.ndarray, cull: np.ndarray, cells: Tuple, box6: np.ndarray,
+          poly_plane: np.ndarray, planes: np.ndarray, plane_first: np.ndarray, vertices: np.ndarray,
+          vertex_first: np.ndarray, frustum: np.ndarray, f_px: np.ndarray, c_px: np.ndarray, fixed_scale: float,
+          near: float, stride: int, grid_h: int, grid_w: int, max_range: float, back_eps: float,
+          cull_eps: float) -> Tuple[np.ndarray, ...]:
+    """``PlaneIndex.in_view`` and ``roi.predict_plane_views``' geometry in one call (see
+    ``roi.predict_views``): the view's bounding ``corners`` (8, 3) and ``cull`` planes (6, 4) in the
+    camera frame, the polygon grid ``cells`` (origin x, origin y, cell, ni, nj, offsets, ids), the
+    packed map (polygon boxes, plane of each polygon, planes, first polygon of each plane, the
+    vertices and first vertex of each polygon). Returns (facing planes, their planes in C, and
+    :func:`outlines`' seven arrays)."""
+    T = _f64(T_ground_camera)
+    R_T = np.ascontiguousarray(T[:3, :3].T)
+    t_C = -T[:3, :3].T @ T[:3, 3]  # as roi._stack_in_camera computes it
+    ox, oy, cell, ni, nj, offsets, ids = cells
+    return _nb["_views_kernel"](T, corners, cull, float(ox), float(oy), float(cell), int(ni), int(nj), offsets, ids,
+                                box6, poly_plane, planes, plane_first, vertices, vertex_first, R_T, t_C, frustum,
+                                float(f_px[0]), float(f_px[1]), float(c_px[0]), float(c_px[1]), float(fixed_scale),
+                                float(near), int(stride), int(grid_h), int(grid_w), float(max_range), float(back_eps),
+                                float(cull_eps))
 
 
 def best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
@@ -993,6 +1022,130 @@ def _clip(buf, n, planes, bits, out):  # pragma: no cover (compiled)
 
 def _outline_kernel(P, every, some, first, counts, plane_of, frustum, fx, fy, cx, cy, fixed_scale, near, stride,
                     grid_h, grid_w, max_range):  # pragma: no cover (compiled)
+    return _outlines_of(P, every, some, first, counts, plane_of, frustum, fx, fy, cx, cy, fixed_scale, near, stride,
+                        grid_h, grid_w, max_range)
+
+
+def _views_kernel(T, corners, cull, origin_x, origin_y, cell, ni, nj, offsets, ids, box6, poly_plane, planes,
+                  plane_first, vertices, vertex_first, R_T, t_C, frustum, fx, fy, cx, cy, fixed_scale, near, stride,
+                  grid_h, grid_w, max_range, back_eps, cull_eps):  # pragma: no cover (compiled)
+    """PlaneIndex.in_view, then roi._facing_camera, _stack_in_camera, _outside_bits and the outlines
+    (_outlines_of), in one call. The visibility cull is conservative, as in_view's: it leaves a
+    polygon out only when its box lies outside a bounding plane of the view by more than
+    ``cull_eps``, which no rounding of these sums reaches, and the grid query's box is padded by a
+    micrometre: so it keeps the planes in_view keeps (at most a plane more that the facing test or
+    the clip drops), and the views are the same. From the facing test on, every product is
+    numpy's, operation for operation (the einsums' orders, measured: tests/test_roi_speed_equivalence.py)."""
+    # -- in_view: the grid cells under the range-truncated frustum's footprint
+    x_lo = math.inf
+    y_lo = math.inf
+    x_hi = -math.inf
+    y_hi = -math.inf
+    for i in range(corners.shape[0]):
+        x = corners[i, 0] * T[0, 0] + corners[i, 1] * T[0, 1] + corners[i, 2] * T[0, 2] + T[0, 3]
+        y = corners[i, 0] * T[1, 0] + corners[i, 1] * T[1, 1] + corners[i, 2] * T[1, 2] + T[1, 3]
+        x_lo = min(x_lo, x)
+        x_hi = max(x_hi, x)
+        y_lo = min(y_lo, y)
+        y_hi = max(y_hi, y)
+    pad = 1e-6
+    i0 = math.floor((x_lo - pad - origin_x) / cell)
+    j0 = math.floor((y_lo - pad - origin_y) / cell)
+    i1 = math.floor((x_hi + pad - origin_x) / cell)
+    j1 = math.floor((y_hi + pad - origin_y) / cell)
+    n_map = planes.shape[0]
+    seen = np.zeros(n_map, np.bool_)
+    if not (i1 < 0 or j1 < 0 or i0 >= ni or j0 >= nj):
+        i0, j0, i1, j1 = max(i0, 0), max(j0, 0), min(i1, ni - 1), min(j1, nj - 1)
+        # The view's bounding planes in G: n_G = n_C R^T, d_G = d_C - n_G . t
+        nc = cull.shape[0]
+        nn = np.empty((nc, 6))
+        dg = np.empty(nc)
+        for k in range(nc):
+            for j in range(3):
+                nn[k, j] = cull[k, 0] * T[j, 0] + cull[k, 1] * T[j, 1] + cull[k, 2] * T[j, 2]
+                nn[k, 3 + j] = abs(nn[k, j])
+            dg[k] = cull[k, 3] - (nn[k, 0] * T[0, 3] + nn[k, 1] * T[1, 3] + nn[k, 2] * T[2, 3])
+        for i in range(i0, i1 + 1):
+            for q in range(offsets[i * nj + j0], offsets[i * nj + j1 + 1]):
+                c = ids[q]
+                if seen[poly_plane[c]]:
+                    continue
+                inside = True
+                for k in range(nc):
+                    r = dg[k]
+                    for j in range(6):
+                        r += box6[c, j] * nn[k, j]
+                    if r < -cull_eps:
+                        inside = False
+                        break
+                if inside:
+                    seen[poly_plane[c]] = True
+    # The back-face test of in_view (with its rounding room), then _facing_camera's:
+    # pi_C = pi_G T_GC, the camera on the observable side when pi_C's last entry is positive.
+    n_front = 0
+    facing = np.empty(n_map, np.int64)
+    for p in range(n_map):
+        if not seen[p]:
+            continue
+        if planes[p, 0] * T[0, 3] + planes[p, 1] * T[1, 3] + planes[p, 2] * T[2, 3] + planes[p, 3] <= back_eps - cull_eps:
+            continue
+        if ((planes[p, 0] * T[0, 3] + planes[p, 1] * T[1, 3]) + planes[p, 2] * T[2, 3]) + planes[p, 3] * T[3, 3] \
+                > back_eps:
+            facing[n_front] = p
+            n_front += 1
+    facing = facing[:n_front]
+    pi_camera = np.empty((n_front, 4))
+    n_polys = 0
+    n_rows = 0
+    for f in range(n_front):
+        p = facing[f]
+        for k in range(4):
+            pi_camera[f, k] = ((planes[p, 0] * T[0, k] + planes[p, 1] * T[1, k]) + planes[p, 2] * T[2, k]) \
+                + planes[p, 3] * T[3, k]
+        n_polys += plane_first[p + 1] - plane_first[p]
+        n_rows += vertex_first[plane_first[p + 1]] - vertex_first[plane_first[p]]
+    # _stack_in_camera: the facing planes' polygons, plane after plane, their vertices in C;
+    # _outside_bits: bit j of a vertex's word when it is outside frustum plane j.
+    P = np.empty((n_rows, 3))
+    first = np.empty(n_polys, np.int64)
+    counts = np.empty(n_polys, np.int64)
+    plane_of = np.empty(n_polys, np.int64)
+    every = np.empty(n_polys, np.int64)
+    some = np.empty(n_polys, np.int64)
+    n_f = frustum.shape[0]
+    k = 0
+    row = 0
+    for f in range(n_front):
+        p = facing[f]
+        for c in range(plane_first[p], plane_first[p + 1]):
+            first[k] = row
+            counts[k] = vertex_first[c + 1] - vertex_first[c]
+            plane_of[k] = p
+            w_and = -1
+            w_or = 0
+            for v in range(vertex_first[c], vertex_first[c + 1]):
+                for j in range(3):
+                    P[row, j] = ((vertices[v, 0] * R_T[j, 0] + vertices[v, 1] * R_T[j, 1]) + vertices[v, 2] * R_T[j, 2]) \
+                        + t_C[j]
+                word = 0
+                for j in range(n_f):
+                    if (P[row, 0] * frustum[j, 0] + P[row, 2] * frustum[j, 2]) + P[row, 1] * frustum[j, 1] < -frustum[j, 3]:
+                        word |= 1 << j
+                w_and &= word
+                w_or |= word
+                row += 1
+            every[k] = w_and
+            some[k] = w_or
+            k += 1
+    px, fixed, seg, kept, plane_polys, z_near, boxes = _outlines_of(
+        P, every, some, first, counts, plane_of, frustum, fx, fy, cx, cy, fixed_scale, near, stride, grid_h, grid_w,
+        max_range)
+    return facing, pi_camera, px, fixed, seg, kept, plane_polys, z_near, boxes
+
+
+def _outlines_of(P, every, some, first, counts, plane_of, frustum, fx, fy, cx, cy, fixed_scale, near, stride,
+                 grid_h, grid_w, max_range):  # pragma: no cover (compiled)
     n_polys = first.shape[0]
     n_planes = frustum.shape[0]
     # Room for every vertex: a clip against one plane at most doubles a polygon's vertices.

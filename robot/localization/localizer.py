@@ -35,7 +35,7 @@ from robot.localization.integrity import Checker, ErrorModel, Integrity, Observa
 from robot.localization.measurements import PlaneMeasurement
 from robot.localization.plane_fit import FitParams, cross, fit_plane
 from robot.localization.pose_solver import ObservedPlane, direction_label, solve_paper
-from robot.localization.roi import CameraGrid, PlaneView, predict_plane_views, rasterize_views, shrink_rois
+from robot.localization.roi import CameraGrid, PlaneView, predict_views, rasterize_views, shrink_rois
 from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import MapPlane, PlaneMap
 
@@ -487,8 +487,7 @@ class Localizer:
         largest = min(base + 2.0 * (fx * std_phi + fx * std_pos / 0.3), cap)
         pad = int(math.ceil(largest / grid.stride))
         pgrid = geo.padded_grid(pad)
-        in_view = self.index.in_view(T_ground_camera, pgrid.frustum, p.max_range)
-        views = predict_plane_views(self.map, in_view, T_ground_camera, pgrid, p.max_range)
+        views = predict_views(self.map, self.index, T_ground_camera, pgrid, p.max_range)
         label = rasterize_views(views, pgrid)
         shrink_rois(views, label, pgrid, margin_for, pad)
         return views

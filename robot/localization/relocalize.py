@@ -54,7 +54,7 @@ from robot.base.samples import DepthFrame
 from robot.config import CameraConfig, RobotConfig
 from robot.localization import fit_kernels
 from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
-from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views
+from robot.localization.roi import CameraGrid, predict_views, rasterize_views
 from robot.maps.plane_index import PlaneIndex
 from robot.maps.plane_map import PlaneMap
 
@@ -677,8 +677,7 @@ class _Scorer:
             if rels is not None:
                 rel = rels[view]
             T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
-            cands = self.index.in_view(T_gc, grid.frustum, self.max_range)
-            views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
+            views = predict_views(self.map, self.index, T_gc, grid, self.max_range)
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
             cols, rows, _, _ = grid.rays
             # Each view's plane in C, a row per view: a pixel's plane by table lookup (a list of

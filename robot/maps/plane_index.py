@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Dict, List, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from robot.maps.plane_map import PlaneMap
 
 MAX_CELLS = 1 << 20  # a map spread over kilometres gets coarser cells, not a huge grid
 BACK_FACE_EPS = 1e-6  # m: the camera must be this far on the observable side (as in roi.py)
-_CULL_EPS = 1e-9  # m: a box counts as outside a plane only when clearly so (rounding)
+CULL_EPS = 1e-9  # m: a box counts as outside a plane only when clearly so (rounding)
 
 
 @dataclass(frozen=True)
@@ -39,6 +39,8 @@ class PackedPolygons:
     box6: np.ndarray  # (P, 6) centre and half-size of that box
     plane_vertices: Tuple[np.ndarray, ...]  # per plane: its polygons' vertices stacked
     plane_counts: Tuple[Tuple[int, ...], ...]  # per plane: vertex count of each of its polygons
+    vertices: np.ndarray  # (V, 3) every polygon's vertices, polygon after polygon
+    vertex_first: np.ndarray  # (P + 1,) polygon k's vertices are rows vertex_first[k]:vertex_first[k + 1]
 
 
 def _concat_ranges(starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
@@ -68,7 +70,9 @@ def packed_polygons(plane_map: PlaneMap) -> PackedPolygons:
         plane_of=np.repeat(np.arange(len(plane_map.planes), dtype=np.intp), per_plane),
         lo=lo, hi=hi, box6=np.hstack([0.5 * (lo + hi), 0.5 * (hi - lo)]),
         plane_vertices=tuple(p.vertices for p in plane_map.planes),
-        plane_counts=tuple(tuple(len(poly) for poly in p.polygons) for p in plane_map.planes))
+        plane_counts=tuple(tuple(len(poly) for poly in p.polygons) for p in plane_map.planes),
+        vertices=np.ascontiguousarray(np.concatenate(polys), float).reshape(-1, 3) if polys else np.zeros((0, 3)),
+        vertex_first=np.concatenate([[0], np.cumsum([len(poly) for poly in polys], dtype=np.int64)]).astype(np.int64))
     plane_map.__dict__["_packed_polygons"] = (key, packed)
     return packed
 
@@ -148,6 +152,7 @@ class PlaneIndex:
         self._polygons = _Grid(pk.lo[:, :2], pk.hi[:, :2], cell)
         self.cell = cell
         self._bounds_cache: Dict[Tuple[bytes, float], Tuple[np.ndarray, np.ndarray]] = {}
+        self._cells: Optional[Tuple[float, float, float, int, int, np.ndarray, np.ndarray]] = None
 
     def candidates(self, position, max_range: float) -> List[int]:
         """Indices (sorted) of planes whose footprint box lies within ``max_range`` of ``position``."""
@@ -170,6 +175,20 @@ class PlaneIndex:
         gap = np.maximum(np.maximum(self._lo[idx] - hi, lo - self._hi[idx]), 0.0)
         keep = np.einsum("ij,ij->i", gap, gap) <= max_range * max_range
         return idx[keep].tolist()
+
+    def polygon_cells(self) -> Tuple[float, float, float, int, int, np.ndarray, np.ndarray]:
+        """The polygon grid as arrays: (origin x, origin y, cell size, rows, columns, offsets, ids);
+        cell (i, j) holds polygons ``ids[offsets[i * columns + j]:offsets[i * columns + j + 1]]``."""
+        if self._cells is None:
+            g = self._polygons
+            self._cells = (float(g.origin[0]), float(g.origin[1]), float(g.cell), g.ni, g.nj,
+                           g.offsets.astype(np.int64), g.ids.astype(np.int64))
+        return self._cells
+
+    def view_bounds(self, frustum: np.ndarray, max_range: float) -> Tuple[np.ndarray, np.ndarray]:
+        """(8, 3) corners and the six bounding planes (frustum, then the far plane at ``max_range``)
+        of the range-truncated frustum, in the camera frame; cached per frustum."""
+        return self._view_bounds(frustum, max_range)
 
     def _view_bounds(self, frustum: np.ndarray, max_range: float):
         """Corners of the range-truncated frustum and its six bounding planes (camera frame)."""
@@ -203,7 +222,7 @@ class PlaneIndex:
         d_G = planes_C[:, 3] - n_G @ t
         n_T = n_G.T
         reach = pk.box6[polys] @ np.concatenate((n_T, np.abs(n_T))) + d_G
-        planes = _sorted_unique(pk.plane_of[polys[(reach >= -_CULL_EPS).all(axis=1)]])
+        planes = _sorted_unique(pk.plane_of[polys[(reach >= -CULL_EPS).all(axis=1)]])
         pi = pk.planes[planes]
         # Same back-face rule as predict_plane_views, with room for rounding.
-        return planes[pi[:, :3] @ t + pi[:, 3] > BACK_FACE_EPS - _CULL_EPS].tolist()
+        return planes[pi[:, :3] @ t + pi[:, 3] > BACK_FACE_EPS - CULL_EPS].tolist()
