@@ -101,7 +101,7 @@ def two_walls_visible(plane_map, pose, index, scene) -> bool:
         label = rasterize_views(views, grid)
         h, w = grid.shape
         z = render_depth_frame(ROBOT, scene, cam.name, pose, noise=None).depth_m()[::16, ::16][:h, :w]
-        cols, rows, _, _ = grid.rays
+        cols, rows = grid.rays
         for k, v in enumerate(views):
             r_idx, c_idx = np.nonzero(label == k)
             if len(r_idx) < 40:

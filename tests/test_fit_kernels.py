@@ -471,7 +471,7 @@ def test_numpy_backend_forced_runs_the_numpy_code(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("a compiled kernel ran with the numpy backend")
 
-    for name in ("fit_tail", "score", "behind_count", "first_hypotheses", "outlines"):
+    for name in ("fit_tail", "score", "behind_count", "first_hypotheses", "outlines", "views", "zbuffer"):
         monkeypatch.setattr(fk, name, refuse)
     assert fk.set_backend("numpy") == "numpy" and fk.backend() == "numpy"
     assert fk.warm_up() == 0.0

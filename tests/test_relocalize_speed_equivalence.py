@@ -98,7 +98,7 @@ class ReferenceScorer(_Scorer):
             cands = self.index.in_view(T_gc, grid.frustum, self.max_range)
             views = predict_plane_views(self.map, cands, T_gc, grid, self.max_range) if cands else []
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
-            cols, rows, _, _ = grid.rays
+            cols, rows = grid.rays
             edges = _label_edges(label)
             h, w = label.shape
             if free is not None:

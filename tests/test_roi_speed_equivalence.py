@@ -153,9 +153,9 @@ def ref_predict(plane_map, candidates, T_ground_camera, grid, max_range) -> List
 
 def ref_rasterize(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
     h, w = grid.shape
-    ibuf = np.zeros((h, w), dtype=np.float32)
+    ibuf = np.zeros((h, w), dtype=np.float64)
     label = np.full((h, w), -1, dtype=np.int32)
-    cols, rows, x_img, y_img = grid.rays
+    cols, rows = grid.rays
     one = 1 << SHIFT
     drawn = False
     for k in sorted(range(len(views)), key=lambda j: views[j].z_near):
@@ -181,7 +181,9 @@ def ref_rasterize(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
             polys = [np.rint(o * (float(1 << SHIFT) / grid.stride)).astype(np.int32) for o in view.outlines_px]
         mask = np.zeros((r1 - r0 + 1, c1 - c0 + 1), np.uint8)
         cv2.fillPoly(mask, polys, 1, lineType=cv2.LINE_8, shift=SHIFT, offset=(-c0 * one, -r0 * one))
-        inv = cv2.addWeighted(x_img[r0:r1 + 1, c0:c1 + 1], a, y_img[r0:r1 + 1, c0:c1 + 1], b, c)
+        # Inverse depth in float64, a x + b y first, then c (the product's order of operations).
+        inv = (a * cols[c0:c1 + 1])[None, :] + (b * rows[r0:r1 + 1])[:, None]
+        inv += c
         inv *= mask
         upd = inv > isub
         np.maximum(isub, inv, out=isub)
@@ -492,3 +494,35 @@ def test_the_compiled_views_are_in_view_then_predict(name):
                     views += len(ref)
                     empty += not ref
     assert views > 300 and empty > 0  # planes were seen, and some poses saw none (outside, facing away)
+
+
+def test_the_compiled_depth_buffer_is_the_numpy_one():
+    """fit_kernels.zbuffer against roi._zbuffer, the numpy code, on random boxes, planes and
+    polygon masks drawn into buffers that already hold nearer and farther planes: the same
+    labels and the same buffer, to the bit, with and without writing the buffer."""
+    pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
+    from robot.localization import fit_kernels, roi
+
+    if fit_kernels.backend() != "numba":
+        pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
+    rng = np.random.default_rng(23)
+    grid = CameraGrid(ROBOT.cameras[0].intrinsics_from_fov(), 848, 480, 4)
+    cols, rows = grid.rays
+    h, w = grid.shape
+    won = 0
+    for trial in range(60):
+        ibuf = np.where(rng.random((h, w)) < 0.5, rng.uniform(0.1, 1.0, (h, w)), 0.0)
+        label = np.where(ibuf > 0, rng.integers(0, 5, (h, w)), -1).astype(np.int32)
+        mask = (rng.random((h, w)) < 0.6).astype(np.uint8)
+        r0, c0 = int(rng.integers(0, h - 1)), int(rng.integers(0, w - 1))
+        box = (r0, int(rng.integers(r0 + 1, h + 1)), c0, int(rng.integers(c0 + 1, w + 1)))
+        # A plane 1 to 3 m away, tilted: inverse depths around the buffer's on part of the box.
+        a, b = rng.normal(0.0, 0.3, 2)
+        c = float(rng.uniform(0.3, 1.0))
+        write = bool(trial % 2)
+        ref_buf, ref_label = ibuf.copy(), label.copy()
+        roi._zbuffer(mask, ref_buf, ref_label, cols, rows, a, b, c, 7, box, write)
+        fit_kernels.zbuffer(mask, ibuf, label, cols, rows, a, b, c, 7, box, write)
+        assert same_array(label, ref_label) and same_array(ibuf, ref_buf), trial
+        won += int((ref_label == 7).sum())
+    assert won > 10000  # the plane won many pixels, and lost others

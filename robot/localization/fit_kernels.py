@@ -161,7 +161,7 @@ def set_backend(name: Optional[str]) -> str:
 
 
 _KERNELS = ("_tail_kernel", "_one_surface_kernel", "_score_kernel", "_behind_kernel", "_gather_kernel",
-            "_hypotheses_kernel", "_outline_kernel", "_views_kernel", "_best_line_kernel")
+            "_hypotheses_kernel", "_outline_kernel", "_views_kernel", "_zbuffer_kernel", "_best_line_kernel")
 _NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-point error model
 
 
@@ -288,6 +288,9 @@ def _run_each_kernel() -> None:
     one = np.ones(1, np.int64)
     outlines(P, one * 0, one * 2, one * 0, one * 4, one * 0, np.array([[0.0, 0.0, 1.0, -0.01], [1.0, 0.0, 0.0, 0.5]]),
              np.array([100.0, 100.0]), np.array([50.0, 50.0]), 4.0, 0.01, 4, 25, 25, 6.0)
+    buf = np.zeros((3, 4))
+    zbuffer(np.ones((3, 4), np.uint8), buf, np.full((3, 4), -1, np.int32), np.linspace(-0.5, 0.5, 4),
+            np.linspace(-0.3, 0.3, 3), 0.1, 0.2, 0.5, 0, (0, 3, 0, 4), True)
     # The same square as a one-plane map (a wall 2 m ahead, facing the camera), seen from the origin.
     frustum = np.array([[0.0, 0.0, 1.0, -0.01], [1.0, 0.0, 0.0, 0.5]])
     cells = (-1.0, -1.0, 2.0, 1, 1, np.array([0, 1], np.int64), np.zeros(1, np.int64))
@@ -439,6 +442,15 @@ def views(T_ground_camera: np.ndarray, corners: np.ndarray, cull: np.ndarray, ce
                                 float(f_px[0]), float(f_px[1]), float(c_px[0]), float(c_px[1]), float(fixed_scale),
                                 float(near), int(stride), int(grid_h), int(grid_w), float(max_range), float(back_eps),
                                 float(cull_eps))
+
+
+def zbuffer(mask: np.ndarray, ibuf: np.ndarray, label: np.ndarray, cols: np.ndarray, rows: np.ndarray, a: float,
+            b: float, c: float, k: int, box: Tuple[int, int, int, int], write: bool) -> None:
+    """``roi._zbuffer``: a plane's pixels into the label image and the inverse-depth buffer, in place
+    (``box``: r0, r1, c0, c1, the ends excluded)."""
+    r0, r1, c0, c1 = box
+    _nb["_zbuffer_kernel"](mask, ibuf, label, cols, rows, float(a), float(b), float(c), int(k), int(r0), int(r1),
+                           int(c0), int(c1), bool(write))
 
 
 def best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
@@ -1239,6 +1251,22 @@ def _outlines_of(P, every, some, first, counts, plane_of, frustum, fx, fy, cx, c
             boxes[n_out, 3] = min(math.ceil(v1 / stride), grid_h - 1)
             n_out += 1
     return px, fixed, seg[:n_kept + 1], planes[:n_out], plane_polys[:n_out], z_near[:n_out], boxes[:n_out]
+
+
+def _zbuffer_kernel(mask, ibuf, label, cols, rows, a, b, c, k, r0, r1, c0, c1, write):  # pragma: no cover (compiled)
+    """roi._zbuffer's numpy code pixel by pixel: on rows r0:r1, columns c0:c1, a pixel inside the
+    plane's polygons (``mask``) that it sees nearer than ``ibuf`` (inverse depth, float64) takes
+    label ``k``, and its inverse depth goes into ``ibuf`` when ``write``."""
+    for r in range(r0, r1):
+        by = b * rows[r]
+        for col in range(c0, c1):
+            if mask[r, col] == 0:
+                continue
+            inv = (a * cols[col] + by) + c
+            if inv > ibuf[r, col]:
+                label[r, col] = k
+                if write:
+                    ibuf[r, col] = inv
 
 
 def _wall_depth(table, k, x, y):  # pragma: no cover (compiled)

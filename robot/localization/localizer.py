@@ -424,7 +424,7 @@ class Localizer:
             nominal = max(1, self.params.pixel_stride) * scale
             stride = max(1, int(round(nominal)))
             grid = CameraGrid(np.asarray(K, float), width, height, stride)
-            cols, rows, _, _ = grid.rays
+            cols, rows = grid.rays
             geo = self._geometry[key] = _FrameGeometry(grid, scale, (nominal / stride) ** 2,
                                                        np.array(cols, float), np.array(rows, float))
         if len(self._geometry_exact) < 64:  # (a K that changes from frame to frame keeps the rounded key)

@@ -614,7 +614,7 @@ class _Scorer:
                 z = f.depth_m()[::stride, ::stride].astype(float)
                 h, w = grid.shape
                 z = np.ascontiguousarray(z[:h, :w])
-                cols, rows, _, _ = grid.rays
+                cols, rows = grid.rays
                 # Measured points, to tell floor pixels (no information) from the rest.
                 xr = cols[None, :] * z
                 yr = rows[:, None] * z
@@ -679,7 +679,7 @@ class _Scorer:
             T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
             views = predict_views(self.map, self.index, T_gc, grid, self.max_range)
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
-            cols, rows, _, _ = grid.rays
+            cols, rows = grid.rays
             # Each view's plane in C, a row per view: a pixel's plane by table lookup (a list of
             # rows built pixel by pixel was a tenth of a relocalization's CPU on a 300-plane map).
             table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)

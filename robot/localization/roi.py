@@ -89,18 +89,13 @@ class CameraGrid:
         return np.array([[self.K[0, 0] / s, 0, self.K[0, 2] / s], [0, self.K[1, 1] / s, self.K[1, 2] / s], [0, 0, 1]])
 
     @property
-    def rays(self):
-        """Ray coordinates x/z of the grid's columns and y/z of its rows (float64), and the same
-        as float32 images of the grid's shape (x/z, y/z at every grid pixel)."""
+    def rays(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Ray coordinates x/z of the grid's columns and y/z of its rows (float64)."""
         r = self.__dict__.get("_rays")
         if r is None:
             Kg = self.K_grid
             h, w = self.shape
-            cols = (np.arange(w) - Kg[0, 2]) / Kg[0, 0]
-            rows = (np.arange(h) - Kg[1, 2]) / Kg[1, 1]
-            x_img = np.ascontiguousarray(np.broadcast_to(cols.astype(np.float32), (h, w)))
-            y_img = np.ascontiguousarray(np.broadcast_to(rows.astype(np.float32)[:, None], (h, w)))
-            r = self.__dict__["_rays"] = (cols, rows, x_img, y_img)
+            r = self.__dict__["_rays"] = ((np.arange(w) - Kg[0, 2]) / Kg[0, 0], (np.arange(h) - Kg[1, 2]) / Kg[1, 1])
         return r
 
     def _per_frame(self) -> _GridConstants:
@@ -131,7 +126,7 @@ class _GridConstants:
     """A grid's fixed numbers in the form the per-frame loops use them."""
 
     def __init__(self, grid: CameraGrid):
-        cols, rows, _, _ = grid.rays
+        cols, rows = grid.rays
         self.cols: List[float] = cols.tolist()
         self.rows: List[float] = rows.tolist()
         # Largest |x/z| and |y/z| on the grid: the scale of the float32 rounding in rasterize_views.
@@ -161,7 +156,7 @@ class _Scratch:
     rasterization drew is reset at the start of the next."""
 
     def __init__(self, shape: Tuple[int, int]):
-        self.ibuf = np.zeros(shape, np.float32)  # inverse depth drawn so far, 0 for nothing
+        self.ibuf = np.zeros(shape, np.float64)  # inverse depth drawn so far, 0 for nothing
         self.label = np.full(shape, -1, np.int32)
         self.dirty: List[Tuple[int, int, int, int]] = []  # boxes (r0, r1, c0, c1) drawn last
 
@@ -173,9 +168,6 @@ class _Work:
 
     def __init__(self, shape: Tuple[int, int]):
         self.mask = np.zeros(shape, np.uint8)  # the plane's polygons (1)
-        self.inv = np.zeros(shape, np.float32)  # its inverse depth
-        self.upd = np.zeros(shape, np.uint8)  # the pixels it wins (1)
-        self.fill = np.zeros(shape, np.int32)  # its index, to copy through ``upd``
 
 
 _work = threading.local()
@@ -492,7 +484,8 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
     consts = grid._per_frame()
     cols, rows = consts.cols, consts.rows
     col_span, row_span = consts.col_span, consts.row_span
-    _, _, x_img, y_img = grid.rays
+    cols_a, rows_a = grid.rays
+    zbuffer = fit_kernels.zbuffer if fit_kernels.backend() == "numba" else _zbuffer
     one = 1 << _SUBPIXEL_BITS
     order = sorted(range(len(views)), key=lambda j: views[j].z_near)
     last = order[-1] if order else -1
@@ -506,15 +499,13 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
             view.box = (0, 0, -1, -1)
             continue  # off the grid, or a plane through the optical centre (seen edge-on)
         a, b, c = -n0 / n3, -n1 / n3, -n2 / n3
-        # Largest inverse depth on the box, at a corner; with room for the float32 rounding of
-        # the per-pixel values below (a few 1e-7 of the terms' magnitudes), so that the test
-        # never skips a plane that would win a pixel.
+        # Largest inverse depth on the box, at a corner; with room for the rounding of the
+        # per-pixel values (a few 1e-16 of the terms' magnitudes), so that the test never skips
+        # a plane that would win a pixel.
         ia, ib = max(a * cols[c0], a * cols[c1]), max(b * rows[r0], b * rows[r1])
         top = ia + ib + c + 1e-6 * (abs(a) * col_span + abs(b) * row_span + abs(c))
-        box = (slice(r0, r1 + 1), slice(c0, c1 + 1))
-        isub = ibuf[box]
         # (With nothing drawn yet, nothing can hide the first plane.)
-        if top <= 0 or (dirty and top <= isub.min()):
+        if top <= 0 or (dirty and top <= ibuf[r0:r1 + 1, c0:c1 + 1].min()):
             view.box = (0, 0, -1, -1)
             continue  # behind the camera on the whole box, or hidden behind what is already drawn
         if view.fixed_px is not None and view.fixed_px[0] == grid.stride:
@@ -522,22 +513,32 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
         else:
             polys = [_fixed_point(o, grid.stride) for o in view.outlines_px]
         # The box origin goes in as fillPoly's offset, in the same fixed-point units.
-        mask = work.mask[box]
+        mask = work.mask[r0:r1 + 1, c0:c1 + 1]
         mask.fill(0)
         cv2.fillPoly(mask, polys, 1, lineType=cv2.LINE_8, shift=_SUBPIXEL_BITS, offset=(-c0 * one, -r0 * one))
-        inv = cv2.addWeighted(x_img[box], a, y_img[box], b, c, dst=work.inv[box])
-        # Won: inside the polygon and nearer than what is drawn (the buffer is >= 0, so a pixel
-        # where the plane lies behind the camera never wins); the same wins and buffer as the
-        # plain np.maximum(buffer, inverse depth * mask), in fewer passes over the box.
-        upd = cv2.compare(inv, isub if dirty else 0.0, cv2.CMP_GT, dst=work.upd[box])
-        cv2.bitwise_and(upd, mask, dst=upd)
         dirty.append((r0, r1 + 1, c0, c1 + 1))  # before writing: reset next time whatever happens
-        if k != last:
-            cv2.copyTo(inv, upd, isub)  # no plane after the last one reads the buffer
-        fill = work.fill[box]
-        fill.fill(k)
-        cv2.copyTo(fill, upd, label[box])
+        # (No plane after the last one reads the buffer.)
+        zbuffer(work.mask, ibuf, label, cols_a, rows_a, a, b, c, k, (r0, r1 + 1, c0, c1 + 1), k != last)
     return label
+
+
+def _zbuffer(mask: np.ndarray, ibuf: np.ndarray, label: np.ndarray, cols: np.ndarray, rows: np.ndarray, a: float,
+             b: float, c: float, k: int, box: Tuple[int, int, int, int], write: bool) -> None:
+    """A plane's pixels into the label image: on ``box`` (r0, r1, c0, c1, the ends excluded), a
+    pixel inside its polygons (``mask``) where its inverse depth, 1/z = a x + b y + c at the
+    pixel's ray (x, y, 1), beats the buffer's takes label ``k``; with ``write`` its inverse depth
+    goes into the buffer. (The buffer is >= 0, so a pixel where the plane lies behind the camera
+    never wins.) In float64, in this order of operations, which fit_kernels.zbuffer repeats: the
+    same pixels on every machine (OpenCV's float32 weighted sum rounds differently with and
+    without Intel's IPP, which decided pixels where two walls meet)."""
+    r0, r1, c0, c1 = box
+    inv = (a * cols[c0:c1])[None, :] + (b * rows[r0:r1])[:, None]
+    inv += c
+    isub = ibuf[r0:r1, c0:c1]
+    won = (inv > isub) & (mask[r0:r1, c0:c1] != 0)
+    if write:
+        isub[won] = inv[won]
+    label[r0:r1, c0:c1][won] = k
 
 
 def shrink_rois(views: List[PlaneView], label: np.ndarray, grid: CameraGrid,
