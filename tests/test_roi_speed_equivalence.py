@@ -526,3 +526,26 @@ def test_the_compiled_depth_buffer_is_the_numpy_one():
         assert same_array(label, ref_label) and same_array(ibuf, ref_buf), trial
         won += int((ref_label == 7).sum())
     assert won > 10000  # the plane won many pixels, and lost others
+
+
+def test_the_compiled_hidden_test_is_the_numpy_one():
+    """fit_kernels.hidden against roi._hidden (the box's minimum against the plane's largest
+    inverse depth) on random buffers, boxes and thresholds, at and around the minimum."""
+    pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
+    from robot.localization import fit_kernels, roi
+
+    if fit_kernels.backend() != "numba":
+        pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
+    rng = np.random.default_rng(29)
+    h, w = 30, 53
+    answers = set()
+    for trial in range(400):
+        ibuf = np.where(rng.random((h, w)) < 0.1 * (trial % 10), 0.0, rng.uniform(0.2, 1.0, (h, w)))
+        r0, c0 = int(rng.integers(0, h - 1)), int(rng.integers(0, w - 1))
+        box = (r0, int(rng.integers(r0 + 1, h + 1)), c0, int(rng.integers(c0 + 1, w + 1)))
+        low = float(ibuf[box[0]:box[1], box[2]:box[3]].min())
+        for top in (low, np.nextafter(low, 2.0), np.nextafter(low, -1.0), low * 0.5, float(rng.uniform(0.0, 1.2))):
+            ref = roi._hidden(ibuf, box, float(top))
+            assert fit_kernels.hidden(ibuf, box, float(top)) is ref, (trial, top)
+            answers.add(ref)
+    assert answers == {True, False}

@@ -161,7 +161,8 @@ def set_backend(name: Optional[str]) -> str:
 
 
 _KERNELS = ("_tail_kernel", "_one_surface_kernel", "_score_kernel", "_behind_kernel", "_gather_kernel",
-            "_hypotheses_kernel", "_outline_kernel", "_views_kernel", "_zbuffer_kernel", "_best_line_kernel")
+            "_hypotheses_kernel", "_outline_kernel", "_views_kernel", "_zbuffer_kernel", "_hidden_kernel",
+            "_best_line_kernel")
 _NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-point error model
 
 
@@ -291,6 +292,7 @@ def _run_each_kernel() -> None:
     buf = np.zeros((3, 4))
     zbuffer(np.ones((3, 4), np.uint8), buf, np.full((3, 4), -1, np.int32), np.linspace(-0.5, 0.5, 4),
             np.linspace(-0.3, 0.3, 3), 0.1, 0.2, 0.5, 0, (0, 3, 0, 4), True)
+    hidden(buf, (0, 3, 0, 4), 0.5)
     # The same square as a one-plane map (a wall 2 m ahead, facing the camera), seen from the origin.
     frustum = np.array([[0.0, 0.0, 1.0, -0.01], [1.0, 0.0, 0.0, 0.5]])
     cells = (-1.0, -1.0, 2.0, 1, 1, np.array([0, 1], np.int64), np.zeros(1, np.int64))
@@ -451,6 +453,13 @@ def zbuffer(mask: np.ndarray, ibuf: np.ndarray, label: np.ndarray, cols: np.ndar
     r0, r1, c0, c1 = box
     _nb["_zbuffer_kernel"](mask, ibuf, label, cols, rows, float(a), float(b), float(c), int(k), int(r0), int(r1),
                            int(c0), int(c1), bool(write))
+
+
+def hidden(ibuf: np.ndarray, box: Tuple[int, int, int, int], top: float) -> bool:
+    """``roi._hidden``: whether the buffer holds at least ``top`` everywhere on ``box`` (r0, r1, c0,
+    c1, the ends excluded), looking no further than the first pixel that does not."""
+    r0, r1, c0, c1 = box
+    return bool(_nb["_hidden_kernel"](ibuf, int(r0), int(r1), int(c0), int(c1), float(top)))
 
 
 def best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
@@ -1267,6 +1276,15 @@ def _zbuffer_kernel(mask, ibuf, label, cols, rows, a, b, c, k, r0, r1, c0, c1, w
                 label[r, col] = k
                 if write:
                     ibuf[r, col] = inv
+
+
+def _hidden_kernel(ibuf, r0, r1, c0, c1, top):  # pragma: no cover (compiled)
+    """top <= ibuf[r0:r1, c0:c1].min(), stopping at the first pixel below ``top``."""
+    for r in range(r0, r1):
+        for col in range(c0, c1):
+            if ibuf[r, col] < top:
+                return False
+    return True
 
 
 def _wall_depth(table, k, x, y):  # pragma: no cover (compiled)

@@ -485,7 +485,8 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
     cols, rows = consts.cols, consts.rows
     col_span, row_span = consts.col_span, consts.row_span
     cols_a, rows_a = grid.rays
-    zbuffer = fit_kernels.zbuffer if fit_kernels.backend() == "numba" else _zbuffer
+    zbuffer, hidden = (fit_kernels.zbuffer, fit_kernels.hidden) if fit_kernels.backend() == "numba" \
+        else (_zbuffer, _hidden)
     one = 1 << _SUBPIXEL_BITS
     order = sorted(range(len(views)), key=lambda j: views[j].z_near)
     last = order[-1] if order else -1
@@ -505,7 +506,7 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
         ia, ib = max(a * cols[c0], a * cols[c1]), max(b * rows[r0], b * rows[r1])
         top = ia + ib + c + 1e-6 * (abs(a) * col_span + abs(b) * row_span + abs(c))
         # (With nothing drawn yet, nothing can hide the first plane.)
-        if top <= 0 or (dirty and top <= ibuf[r0:r1 + 1, c0:c1 + 1].min()):
+        if top <= 0 or (dirty and hidden(ibuf, (r0, r1 + 1, c0, c1 + 1), top)):
             view.box = (0, 0, -1, -1)
             continue  # behind the camera on the whole box, or hidden behind what is already drawn
         if view.fixed_px is not None and view.fixed_px[0] == grid.stride:
@@ -520,6 +521,13 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
         # (No plane after the last one reads the buffer.)
         zbuffer(work.mask, ibuf, label, cols_a, rows_a, a, b, c, k, (r0, r1 + 1, c0, c1 + 1), k != last)
     return label
+
+
+def _hidden(ibuf: np.ndarray, box: Tuple[int, int, int, int], top: float) -> bool:
+    """Whether the buffer holds at least ``top`` everywhere on ``box`` (r0, r1, c0, c1, the ends
+    excluded): a plane whose inverse depth is nowhere above ``top`` there is hidden."""
+    r0, r1, c0, c1 = box
+    return bool(top <= ibuf[r0:r1, c0:c1].min())
 
 
 def _zbuffer(mask: np.ndarray, ibuf: np.ndarray, label: np.ndarray, cols: np.ndarray, rows: np.ndarray, a: float,
