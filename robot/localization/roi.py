@@ -464,10 +464,10 @@ def rasterize_views(views: List[PlaneView], grid: CameraGrid) -> np.ndarray:
     """Label image on the grid: index into ``views`` of the nearest plane per pixel, -1 for none.
 
     The buffer holds inverse depth, 1/z = -(n . ray) / d, which is affine in the pixel's ray
-    coordinates: one weighted sum of the grid's ray images per plane, 0 for "nothing", and on a
-    box its largest value is at a corner. Planes are drawn nearest first; one whose largest inverse depth on its box does not
-    beat what is already drawn everywhere on that box is hidden: it is skipped before
-    rasterizing and its ``box`` set empty. On equal depth the plane drawn first (nearer z_near,
+    coordinates (``_zbuffer``), 0 for "nothing", and on a box its largest value is at a corner.
+    Planes are drawn nearest first; one whose largest inverse depth on its box does not beat
+    what is already drawn everywhere on that box is hidden: it is skipped before rasterizing
+    and its ``box`` set empty. On equal depth the plane drawn first (nearer z_near,
     then lower index) keeps the pixel.
 
     The label image returned is the grid's buffer for this thread, not a new array (which saves
