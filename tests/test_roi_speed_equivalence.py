@@ -403,6 +403,29 @@ def test_label_image_is_reused_and_reset():
     assert (rasterize_views([], grid) == -1).all()
 
 
+def _floor_or_map_and_poses(name: str, seed: int) -> Tuple[object, List[Tuple[float, float, float]]]:
+    """40 poses in and around a map: the 288-plane floor of alike rooms (``room_grid``, whose
+    cells hold a dozen polygons, most crossing a view's frustum) or a map of config/maps."""
+    from drivers.sim.building import grid_for_planes, room_grid_map
+
+    if name != "room_grid":
+        return plane_map_and_poses(name, 40, seed)
+    plane_map = room_grid_map(*grid_for_planes(288), seed=288)
+    rng = np.random.default_rng(seed)
+    lo, hi = plane_map.bounds()
+    return plane_map, [(float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
+                       for x, y in rng.uniform(lo[:2] - 0.5, hi[:2] + 0.5, (40, 2))]
+
+
+def _grids(cam):
+    """(stride, pad, grid): the relocalizer's coarse grid, the localizer's and a padded one."""
+    K = cam.intrinsics_from_fov()
+    for stride, pad in ((32, 0), (4, 0), (4, 6)):
+        Kp = K.copy()
+        Kp[:2, 2] += pad * stride
+        yield stride, pad, CameraGrid(Kp, cam.width + 2 * pad * stride, cam.height + 2 * pad * stride, stride)
+
+
 @pytest.mark.parametrize("name", ["room_grid", "institute_ground", "paper_arena"])
 def test_the_compiled_outlines_are_the_numpy_outlines(name):
     """fit_kernels.outlines (clip, project, per-plane box) against the numpy code it replaces, on
@@ -410,28 +433,16 @@ def test_the_compiled_outlines_are_the_numpy_outlines(name):
     polygons per view, most crossing the frustum), a building and the arena, on the relocalizer's
     coarse grid, the localizer's and a padded one."""
     pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
-    from drivers.sim.building import grid_for_planes, room_grid_map
     from robot.localization import fit_kernels, roi
 
     if fit_kernels.backend() != "numba":
         pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
-    if name == "room_grid":
-        plane_map = room_grid_map(*grid_for_planes(288), seed=288)
-        rng = np.random.default_rng(9)
-        lo, hi = plane_map.bounds()
-        poses = [(float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
-                 for x, y in rng.uniform(lo[:2] - 0.5, hi[:2] + 0.5, (40, 2))]
-    else:
-        plane_map, poses = plane_map_and_poses(name, 40, 6)
+    plane_map, poses = _floor_or_map_and_poses(name, 9 if name == "room_grid" else 6)
     index = PlaneIndex(plane_map)
     pk = packed_polygons(plane_map)
     clipped = kept = 0
     for cam in ROBOT.cameras:
-        K = cam.intrinsics_from_fov()
-        for stride, pad in ((32, 0), (4, 0), (4, 6)):
-            Kp = K.copy()
-            Kp[:2, 2] += pad * stride
-            grid = CameraGrid(Kp, cam.width + 2 * pad * stride, cam.height + 2 * pad * stride, stride)
+        for stride, pad, grid in _grids(cam):
             consts = grid._per_frame()
             for pose in poses:
                 T = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
@@ -463,27 +474,15 @@ def test_the_compiled_views_are_in_view_then_predict(name):
     alike rooms (its cells hold a dozen polygons), two buildings and the arena, outside them too;
     the relocalizer's coarse grid, the localizer's and a padded one; two ranges."""
     pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
-    from drivers.sim.building import grid_for_planes, room_grid_map
     from robot.localization import fit_kernels
 
     if fit_kernels.backend() != "numba":
         pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy): predict_views is in_view then predict there")
-    if name == "room_grid":
-        plane_map = room_grid_map(*grid_for_planes(288), seed=288)
-        rng = np.random.default_rng(19)
-        lo, hi = plane_map.bounds()
-        poses = [(float(x), float(y), float(rng.uniform(-math.pi, math.pi)))
-                 for x, y in rng.uniform(lo[:2] - 0.5, hi[:2] + 0.5, (40, 2))]
-    else:
-        plane_map, poses = plane_map_and_poses(name, 40, 16)
+    plane_map, poses = _floor_or_map_and_poses(name, 19 if name == "room_grid" else 16)
     index = PlaneIndex(plane_map)
     views = empty = 0
     for cam in ROBOT.cameras:
-        K = cam.intrinsics_from_fov()
-        for stride, pad in ((32, 0), (4, 0), (4, 6)):
-            Kp = K.copy()
-            Kp[:2, 2] += pad * stride
-            grid = CameraGrid(Kp, cam.width + 2 * pad * stride, cam.height + 2 * pad * stride, stride)
+        for stride, pad, grid in _grids(cam):
             for pose in poses:
                 T = pose_to_T_ground_robot(*pose) @ cam.T_robot_camera
                 for max_range in (MAX_RANGE, 10.0):
