@@ -147,7 +147,10 @@ class Master:
                         return m
                 left = deadline - time.monotonic()
                 last = next((m for s, sub, m in reversed(self.messages) if s == serial and sub == "state"), None)
-                assert left > 0, f"hang guard: never saw {what}; last state {json.dumps(last)[:1500]}"
+                # The state's errors first: a long state would cut them off the message.
+                errors = json.dumps((last or {}).get("errors"))[:1500]
+                assert left > 0, f"hang guard: never saw {what}; last state's errors {errors}; " \
+                                 f"last state {json.dumps(last)[:1500]}"
                 self.cond.wait(min(left, 1.0))
 
     def last_state(self, serial="robot-1"):
