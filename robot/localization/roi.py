@@ -129,7 +129,7 @@ class _GridConstants:
         cols, rows = grid.rays
         self.cols: List[float] = cols.tolist()
         self.rows: List[float] = rows.tolist()
-        # Largest |x/z| and |y/z| on the grid: the scale of the float32 rounding in rasterize_views.
+        # Largest |x/z| and |y/z| on the grid: the scale of the rounding in rasterize_views' hidden test.
         self.col_span = max(-self.cols[0], self.cols[-1])
         self.row_span = max(-self.rows[0], self.rows[-1])
         frustum = grid.frustum
@@ -251,15 +251,12 @@ def predict_views(plane_map: PlaneMap, index: PlaneIndex, T_ground_camera: np.nd
     if not len(planes):
         return []
     row = {c: r for r, c in enumerate(facing.tolist())}
-    seg_l = seg.tolist()
     map_planes = plane_map.planes
     stride = grid.stride
-    out = []
-    for idx, (p0, p1), z, box in zip(planes.tolist(), plane_polys.tolist(), z_near.tolist(), boxes.tolist()):
-        out.append(PlaneView(idx, map_planes[idx].id, pi_camera[row[idx]],
-                             [px[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)], z, box=tuple(box),
-                             fixed_px=(stride, [fixed[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)])))
-    return out
+    return [PlaneView(idx, map_planes[idx].id, pi_camera[row[idx]], outlines, z_near, box=box,
+                      fixed_px=(stride, fixed_outlines))
+            for idx, outlines, fixed_outlines, z_near, box in _split_outlines(px, fixed, seg, planes, plane_polys,
+                                                                                z_near, boxes)]
 
 
 def _outlines(polys: _StackedPolygons, consts: _GridConstants, grid: CameraGrid, max_range: float
@@ -283,16 +280,21 @@ def _outlines_compiled(polys: _StackedPolygons, consts: _GridConstants, grid: Ca
     P = polys.P_camera
     first_vertex, every, some = _outside_bits(polys, consts)
     h, w = grid.shape
-    px, fixed, seg, planes, plane_polys, z_near, boxes = fit_kernels.outlines(
+    return _split_outlines(*fit_kernels.outlines(
         np.ascontiguousarray(P), every.astype(np.int64), some.astype(np.int64), first_vertex.astype(np.int64),
         np.array(polys.counts, np.int64), np.array(polys.plane_of, np.int64), consts.frustum_array, consts.f_px,
-        consts.c_px, consts.fixed_scale, NEAR_PLANE, grid.stride, h, w, max_range)
+        consts.c_px, consts.fixed_scale, NEAR_PLANE, grid.stride, h, w, max_range))
+
+
+def _split_outlines(px: np.ndarray, fixed: np.ndarray, seg: np.ndarray, planes: np.ndarray, plane_polys: np.ndarray,
+                    z_near: np.ndarray, boxes: np.ndarray
+                    ) -> List[Tuple[int, List[np.ndarray], List[np.ndarray], float, Tuple[int, int, int, int]]]:
+    """fit_kernels.outlines' arrays as :func:`_plane_outlines` gives them: per plane (index, its
+    outlines in pixels, the same in fixed point, nearest depth, grid box)."""
     seg_l = seg.tolist()
-    out = []
-    for idx, (p0, p1), z, box in zip(planes.tolist(), plane_polys.tolist(), z_near.tolist(), boxes.tolist()):
-        out.append((idx, [px[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)],
-                    [fixed[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)], z, tuple(box)))
-    return out
+    return [(idx, [px[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)],
+             [fixed[seg_l[j]:seg_l[j + 1]] for j in range(p0, p1)], z, tuple(box))
+            for idx, (p0, p1), z, box in zip(planes.tolist(), plane_polys.tolist(), z_near.tolist(), boxes.tolist())]
 
 
 @dataclass
