@@ -414,7 +414,6 @@ def kernel_load_times(fresh: bool = True) -> Dict[str, Any]:
     import numba
 
     from robot.control import scan_kernels
-
     from robot.localization import integrity_kernels
 
     out["numba"] = numba.__version__

@@ -519,6 +519,7 @@ def test_kernels_that_do_not_compile_fall_back_to_numpy_only_under_auto(numba_ba
         raise RuntimeError("no LLVM here\nsecond line")
 
     monkeypatch.setitem(fk._nb, "_tail_kernel", broken)
+    monkeypatch.setattr(fk, "_warmed", False)  # (a process whose kernels have not run yet)
     with pytest.raises(RuntimeError, match="no LLVM"):
         fk.warm_up()  # numba was asked for
     assert fk.backend() == "numba"

@@ -94,6 +94,10 @@ _note = ""  # how the backend was chosen, for the start-up log
 _nb: Dict[str, Any] = {}  # kernel name -> numba dispatcher (or its ahead-of-time build)
 _aot: Optional[Dict[str, Dict[str, Any]]] = None  # the ahead-of-time kernels of every module, when in use
 _compiled = False  # whether every kernel was compiled (or loaded from the cache), under the cache lock
+# Whether every kernel has run once in this process, under the lock: after that nothing of ours
+# writes numba's cache, and a later warm-up (each app start in a process) must not wait on the
+# lock while another process holds it for minutes (``robotctl kernels build``).
+_warmed = False
 _fused = True  # whether numpy's float32 matrix product chains fused multiply-adds (probed)
 _probe_exact = True  # ... and whether the kernel then rounds exactly as it does
 _NO_COLS = np.zeros(0, np.intp)
@@ -118,7 +122,7 @@ def set_backend(name: Optional[str]) -> str:
     auto). Returns the one in use ("numba" for the kernels compiled ahead of time too). Raises
     RuntimeError for an unknown name, for "numba" without numba, or for "aot" without a module
     built for this source."""
-    global _backend, _note, _requested, _aot, _compiled
+    global _backend, _note, _requested, _aot, _compiled, _warmed
     source = "argument"
     if name is None:
         name, source = os.environ.get(ENV, "auto").strip().lower() or "auto", ENV
@@ -136,7 +140,7 @@ def set_backend(name: Optional[str]) -> str:
     if _aot is not None:  # the JIT asked for after the ahead-of-time kernels (robotctl kernels build)
         _aot = None
         _nb.clear()
-        _compiled = False
+        _compiled = _warmed = False
     try:
         _load()
     except ImportError as e:
@@ -168,7 +172,7 @@ _NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-po
 
 def _use_aot() -> bool:
     """Take the kernels compiled ahead of time when they are built for this source."""
-    global _aot, _fused, _compiled
+    global _aot, _fused, _compiled, _warmed
     table = aot_kernels.load()
     if table is None or "fit" not in table:
         return False
@@ -178,6 +182,7 @@ def _use_aot() -> bool:
     _aot = table
     _fused = _probe_fused()
     _compiled = True
+    _warmed = False  # (their first run may compile a fallback: warm_up runs them under the lock)
     return True
 
 
@@ -223,12 +228,12 @@ def _compile_once() -> None:
     the cache lock held, so that no other process of ours writes the cache meanwhile (see
     :mod:`robot.base.kernel_cache`), and before any thread can call a kernel and compile it
     without the lock."""
-    global _compiled
+    global _compiled, _warmed
     if _compiled:
         return
     with cache_lock():
         _run_each_kernel()
-    _compiled = True
+    _compiled = _warmed = True
 
 
 def warm_up() -> float:
@@ -236,13 +241,16 @@ def warm_up() -> float:
     (the first :func:`backend` call does that), then run each once on tiny inputs of the types the
     fit passes. Returns the seconds it took (0 with the numpy backend). If compiling fails, "auto"
     falls back to numpy (:func:`backend_note` says why) and "numba" raises."""
-    global _backend, _note
+    global _backend, _note, _warmed
     t0 = time.perf_counter()
     if backend() != "numba":
         return 0.0
+    if _warmed:  # (the first backend() call compiled them, or an earlier warm-up ran them)
+        return time.perf_counter() - t0
     try:
         with cache_lock():
             _run_each_kernel()
+        _warmed = True
     except Exception as e:
         if _requested == "numba":
             raise
