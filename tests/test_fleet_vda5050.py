@@ -297,6 +297,15 @@ class FleetRobot:
         return sum(1 for _, m in self.rig.emulator.received()
                    if isinstance(m, SetWheelSpeeds) and max(abs(w) for w in m.rad_s) > 0.0)
 
+    def why_still(self) -> str:
+        """The reasons the core gave in its last control ticks, oldest first, repeats merged (for
+        a hang guard's message: why the robot is not driving)."""
+        reasons = []
+        for t, _vx, _vy, _wz, faults, sent, reason in self.ticks[-500:]:
+            if not reasons or reasons[-1][1] != reason:
+                reasons.append((round(t, 2), reason, faults, sent))
+        return f"last control ticks (t, reason, faults, wheels sent): {reasons[-6:]}"
+
     def idle_state(self):
         """Wait for a state with nothing left to drive, not driving; the robot's position in it."""
         return self.master.wait(lambda s: not any(n["released"] for n in s["nodeStates"]) and not s["driving"],
@@ -483,7 +492,10 @@ def test_the_broker_going_away_the_robot_finishes_its_base_and_reconnects(robot,
     far = (0.3, 0.75) if x0 > 0.5 else (0.8, 0.75)
     mark = master.mark()
     master.send("order", make_order("order-C", 0, [("C0", x0, y0), ("C1", *far)], released=2))
-    master.wait(lambda s: s["orderId"] == "order-C" and s["driving"], "driving order-C", since=mark)
+    try:
+        master.wait(lambda s: s["orderId"] == "order-C" and s["driving"], "driving order-C", since=mark)
+    except AssertionError as e:  # (seen once on a starved machine: say what the core was doing)
+        raise AssertionError(f"{e}; {robot.why_still()}") from None
     broker.stop()
     try:
         # Without its master the robot keeps its safe behaviour: it drives the base to its end and stops.
