@@ -92,3 +92,73 @@ def test_ready_status_and_watchdog_stop_when_the_control_loop_stalls(tmp_path, m
     assert not [t for t in pings if t0 + 0.05 < t < t0 + 1.45], "a hung control loop must not ping"
     assert [t for t in pings if t > t0 + 1.6], "pings resume when the loop runs again"
     assert any("STOPPING=1" in m for _, m in got)
+
+
+def test_a_start_that_compiles_the_kernels_asks_systemd_for_more_time_until_it_is_ready(tmp_path, monkeypatch):
+    """Without the ahead-of-time build a first start compiles the kernels (minutes on a Nano, far
+    beyond TimeoutStartSec): while it does, the app renews EXTEND_TIMEOUT_USEC; once the kernels
+    are in, it stops asking and reports READY=1 as usual."""
+    from robot.localization import fit_kernels
+
+    path = str(tmp_path / "notify.sock")
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    server.bind(path)
+    server.settimeout(0.05)
+    got = []
+    done = threading.Event()
+    compiling = threading.Event()  # the stand-in compile runs until the test has seen the asks
+    release = threading.Event()
+
+    def listen():
+        while not done.is_set():
+            try:
+                data = server.recv(4096)
+            except socket.timeout:
+                continue
+            got.append(data.decode())
+
+    def slow_warm_up():
+        compiling.set()
+        assert release.wait(120.0), "hang guard: the test never released the stand-in compile"
+        return 0.0
+
+    listener = threading.Thread(target=listen, daemon=True)
+    listener.start()
+    monkeypatch.setenv("NOTIFY_SOCKET", path)
+    monkeypatch.setattr(fit_kernels, "warm_up", slow_warm_up)
+    sd_notify._reset_for_tests()
+    options = AppOptions(install_signal_handlers=False, stop_when_done=False, start_extend_period=0.05)
+    try:
+        with sim_rig(ROBOT, ARENA, (0.5, 0.6, 0.0), RealtimeSimSettings(fps=5), options,
+                     initial_pose=(0.5, 0.6, 0.0)) as rig:
+            async def script():
+                guard = time.monotonic() + 120.0
+                while not (compiling.is_set() and sum(m.startswith("EXTEND_TIMEOUT_USEC=") for m in list(got)) >= 3):
+                    assert time.monotonic() < guard, f"hang guard: no extension asked while compiling; got {got}"
+                    await asyncio.sleep(0.02)
+                release.set()
+                while not any("READY=1" in m for m in list(got)):
+                    assert time.monotonic() < guard, f"hang guard: never ready; got {got}"
+                    await asyncio.sleep(0.02)
+                rig.app.request_stop("test done")
+
+            async def main():
+                task = asyncio.ensure_future(script())
+                try:
+                    return await rig.app.run()
+                finally:
+                    release.set()
+                    task.cancel()
+
+            assert asyncio.run(main()) == 0
+    finally:
+        done.set()
+        listener.join()
+        server.close()
+        sd_notify._reset_for_tests()
+    asks = [i for i, m in enumerate(got) if m.startswith("EXTEND_TIMEOUT_USEC=")]
+    ready = [i for i, m in enumerate(got) if "READY=1" in m]
+    assert len(asks) >= 3 and len(ready) == 1
+    assert all(m == "EXTEND_TIMEOUT_USEC=150000" for m in (got[i] for i in asks))  # three periods past each ask
+    assert asks[-1] < ready[0], "no extension is asked once the kernels are in"
+    assert any(m.startswith("STATUS=") and "kernels" in m for m in got[:ready[0]])

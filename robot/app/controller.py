@@ -84,6 +84,10 @@ class AppOptions:
     install_signal_handlers: bool = True
     remote: bool = False  # serve the config's control socket and fleet link (robot.app.operator)
     online_calibration: bool = False  # estimate depth scales, mounts and wheel radii while running (fusion.calibration_filter)
+    # While the kernels compile at start-up: s between asks to systemd for more start time, and
+    # the longest compile given more (KERNEL_COMPILE_LIMIT, the default; a hung one is not kept alive).
+    start_extend_period: float = 10.0
+    kernel_compile_limit: float = 1800.0
 
 
 @dataclass
@@ -271,20 +275,41 @@ class RobotApp:
         from robot.control import scan_kernels
         from robot.localization import fit_kernels, integrity_kernels
 
-        sd_notify.status("starting: loading the compiled kernels (the first start compiles them)")
-        for what, kernels in (("plane-fit kernels", fit_kernels), ("integrity kernels", integrity_kernels),
-                              ("obstacle-scan kernels", scan_kernels)):
-            try:
-                seconds = await self._loop.run_in_executor(self._executor, kernels.warm_up)
-            except Exception as e:  # ROBOT_KERNELS=numba and they do not compile: the operator asked for them
-                self.exit_reason = f"{what}: {type(e).__name__}: {e}".splitlines()[0]
-                log.error("%s", self.exit_reason)
-                return False
-            log.info("%s: %s; ready in %.1f s", what, kernels.backend_note(), seconds)
+        sd_notify.status("starting: loading the compiled kernels (a first start without `robotctl kernels build` "
+                         "compiles them: minutes on a Nano)")
+        keep_alive = self._loop.create_task(self._extend_start_while_compiling(), name="start-extension")
+        try:
+            for what, kernels in (("plane-fit kernels", fit_kernels), ("integrity kernels", integrity_kernels),
+                                  ("obstacle-scan kernels", scan_kernels)):
+                try:
+                    seconds = await self._loop.run_in_executor(self._executor, kernels.warm_up)
+                except Exception as e:  # ROBOT_KERNELS=numba and they do not compile: the operator asked for them
+                    self.exit_reason = f"{what}: {type(e).__name__}: {e}".splitlines()[0]
+                    log.error("%s", self.exit_reason)
+                    return False
+                log.info("%s: %s; ready in %.1f s", what, kernels.backend_note(), seconds)
+        finally:
+            keep_alive.cancel()
         # What the protection levels assume of the cameras: an engineer whose robot stays degraded
         # in a large room looks here first (docs/calibration.md, 'What a calibration file buys').
         log.info("%s", error_model_note(self.robot.localizer))
         return True
+
+    async def _extend_start_while_compiling(self) -> None:
+        """Ask systemd for more start time while the kernels compile. Without the ahead-of-time
+        build (install step 5 failed, or an upgrade changed the kernels' sources) the first start
+        compiles them with numba: about two minutes of CPU on this project's reference machine
+        under Python 3.8 (BENCHMARKS.md), so 10 to 20 minutes on a Nano, far beyond the unit's
+        TimeoutStartSec. Killed there, the service would restart into the same compile, each time
+        with numba's cache possibly half-written. Each ask reaches three periods past now and is
+        renewed every period from the event loop, so a process whose loop hangs loses its
+        extension within that; none is asked after ``kernel_compile_limit`` (a compile that hangs
+        in its thread is not kept alive either)."""
+        period = self.options.start_extend_period
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < self.options.kernel_compile_limit:
+            sd_notify.extend_timeout(3.0 * period)
+            await asyncio.sleep(period)
 
     async def _connect_chassis(self) -> bool:
         t0 = time.monotonic()

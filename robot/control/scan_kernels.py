@@ -33,9 +33,10 @@ Backend: the plane fit's (:func:`robot.localization.fit_kernels.backend`, enviro
 is numba and they compiled. If they do not compile, ``auto`` falls back to numpy
 (:func:`backend_note` says why) and ``numba`` raises. numba is imported only then, never by
 importing this module. Compiled code is cached on disk (``cache=True``) where
-``NUMBA_CACHE_DIR`` says. :func:`warm_up` compiles the kernels (3 to 4 s on the development
-machine with numba 0.68; expect 5 to 8 times that on the Nano) or loads them from the cache
-(0.2 s); the app calls it at start-up, so that no frame pays for it.
+``NUMBA_CACHE_DIR`` says. :func:`warm_up` compiles the kernels (half a minute to a minute of
+CPU on the development machine: BENCHMARKS.md, "The localizer, step by step", gives each run's
+figure; expect 5 to 8 times that on the Nano) or loads them from the cache (0.2 s); the app
+calls it at start-up, so that no frame pays for it.
 """
 
 from __future__ import annotations

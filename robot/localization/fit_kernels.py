@@ -66,8 +66,10 @@ Compiled code is cached on disk (``cache=True``) where ``NUMBA_CACHE_DIR`` says;
 variable when it is imported, so it must be set before the first :func:`backend` or
 :func:`warm_up` call. The service sets it to its state directory (the installed package's folder
 may not be writable), and calls :func:`warm_up` at start-up: that compiles the kernels the first
-time (4 s with numba 0.58, 7 s with 0.68 on the development machine; expect 5 to 8 times that on
-the Nano) and loads them from the cache afterwards (0.2 s, plus 0.2 s to import numba).
+time (about 40 s of CPU on the development machine with either numba: BENCHMARKS.md, "The
+localizer, step by step", gives each run's figure; expect 5 to 8 times that on the Nano, which
+is why the install builds them ahead of time) and loads them from the cache afterwards (0.2 s,
+plus 0.2 s to import numba).
 """
 
 from __future__ import annotations
