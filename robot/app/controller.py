@@ -85,7 +85,7 @@ class AppOptions:
     remote: bool = False  # serve the config's control socket and fleet link (robot.app.operator)
     online_calibration: bool = False  # estimate depth scales, mounts and wheel radii while running (fusion.calibration_filter)
     # While the kernels compile at start-up: s between asks to systemd for more start time, and
-    # the longest compile given more (KERNEL_COMPILE_LIMIT, the default; a hung one is not kept alive).
+    # for how long at most it asks (a compile that hangs is not kept alive): see _extend_start_while_compiling.
     start_extend_period: float = 10.0
     kernel_compile_limit: float = 1800.0
 
@@ -298,8 +298,8 @@ class RobotApp:
     async def _extend_start_while_compiling(self) -> None:
         """Ask systemd for more start time while the kernels compile. Without the ahead-of-time
         build (install step 5 failed, or an upgrade changed the kernels' sources) the first start
-        compiles them with numba: about two minutes of CPU on this project's reference machine
-        under Python 3.8 (BENCHMARKS.md), so 10 to 20 minutes on a Nano, far beyond the unit's
+        compiles them with numba: about two minutes of CPU on the development machine under
+        Python 3.8 (BENCHMARKS.md), so 10 to 20 minutes on a Nano, far beyond the unit's
         TimeoutStartSec. Killed there, the service would restart into the same compile, each time
         with numba's cache possibly half-written. Each ask reaches three periods past now and is
         renewed every period from the event loop, so a process whose loop hangs loses its
