@@ -300,11 +300,12 @@ class RobotApp:
         build (install step 5 failed, or an upgrade changed the kernels' sources) the first start
         compiles them with numba: about two minutes of CPU on the development machine under
         Python 3.8 (BENCHMARKS.md), so 10 to 20 minutes on a Nano, far beyond the unit's
-        TimeoutStartSec. Killed there, the service would restart into the same compile, each time
-        with numba's cache possibly half-written. Each ask reaches three periods past now and is
-        renewed every period from the event loop, so a process whose loop hangs loses its
-        extension within that; none is asked after ``kernel_compile_limit`` (a compile that hangs
-        in its thread is not kept alive either)."""
+        TimeoutStartSec. Killed there, it would restart into the rest of the same compile (numba
+        keeps each kernel it finished), a failed start every three minutes until the cache is
+        whole, the robot idle and the journal full of failures. Each ask reaches three periods
+        past now and is renewed every period from the event loop, so a process whose loop hangs
+        loses its extension within that; none is asked after ``kernel_compile_limit`` (a compile
+        that hangs in its thread is not kept alive either)."""
         period = self.options.start_extend_period
         t0 = time.monotonic()
         while time.monotonic() - t0 < self.options.kernel_compile_limit:
