@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
+import sys
 from pathlib import Path
 
 from robot.base.errors import RobotError
@@ -52,6 +54,14 @@ def cmd_status(args: argparse.Namespace) -> int:
     from robot.control import scan_kernels
     from robot.localization import fit_kernels, integrity_kernels
 
+    requested = (os.environ.get(fit_kernels.ENV, "auto") or "auto").strip().lower()
+    if (requested in ("auto", "numba") and not aot_kernels.module_path().is_file()
+            and importlib.util.find_spec("numba") is not None):
+        # Saying which kernels run means loading them, and with an empty cache that is a compile:
+        # an engineer who asked for a status should not wait minutes without knowing why.
+        print("note: no module compiled ahead of time for these sources: loading the kernels with numba's JIT, "
+              "which compiles whatever its cache lacks (about two minutes of CPU on the development machine, "
+              "10 to 20 minutes on a Nano; `robotctl kernels build` makes the module)", file=sys.stderr, flush=True)
     try:
         backend = fit_kernels.backend()
     except RuntimeError as e:
