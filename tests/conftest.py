@@ -63,3 +63,15 @@ def compiled_kernels():
     for kernels in (fit_kernels, integrity_kernels, scan_kernels):
         kernels.warm_up()
     yield
+
+
+@pytest.fixture(autouse=True)
+def _kernel_backend_as_found(monkeypatch):
+    """Every test leaves the kernels' backend as it found it. One that chose numba and kept it
+    made the rest of its worker's tests run on the compiled kernels in the numpy pass (CI's
+    ROBOT_KERNELS=numpy), a different set each run as xdist shares the tests out."""
+    from robot.localization import fit_kernels
+
+    fit_kernels.backend()
+    for name in ("_backend", "_note", "_requested"):
+        monkeypatch.setattr(fit_kernels, name, getattr(fit_kernels, name))
