@@ -269,9 +269,10 @@ class RobotApp:
             await self._shutdown(tasks)
 
     async def _warm_up_kernels(self) -> bool:
-        """Compile the plane fit's and the obstacle scan's kernels (numba, when installed), or load
-        them from the cache, before the first frame: the first start compiles for seconds (tens on
-        a Nano), which must not fall on the localization or the protective stop of a moving robot."""
+        """Load the plane fit's, the integrity checks' and the obstacle scan's kernels (built ahead
+        of time, or numba's from its cache), or compile them, before the first frame: a first start
+        without them compiles for minutes (10 to 20 on a Nano), which must not fall on the
+        localization or the protective stop of a moving robot."""
         from robot.control import scan_kernels
         from robot.localization import fit_kernels, integrity_kernels
 
