@@ -23,15 +23,6 @@ ARENA = load_plane_map("config/maps/paper_arena.yaml")
 NEEDS_NUMBA = "the compiled kernels need numba (pip install -e '.[perf]')"
 
 
-@pytest.fixture(autouse=True)
-def _keep_backend(monkeypatch):
-    """Every test leaves the backend as it found it."""
-    fk.backend()
-    monkeypatch.setattr(fk, "_backend", fk._backend)
-    monkeypatch.setattr(fk, "_note", fk._note)
-    monkeypatch.setattr(fk, "_requested", fk._requested)
-
-
 @pytest.fixture
 def numba_backend():
     pytest.importorskip("numba", reason=NEEDS_NUMBA)

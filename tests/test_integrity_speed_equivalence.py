@@ -281,11 +281,7 @@ class RefChecker:
 
 @pytest.fixture(params=BACKENDS)
 def backend(request, monkeypatch):
-    """The backend under test, and the plane fit's as the test found it afterwards."""
-    fk.backend()
-    monkeypatch.setattr(fk, "_backend", fk._backend)
-    monkeypatch.setattr(fk, "_note", fk._note)
-    monkeypatch.setattr(fk, "_requested", fk._requested)
+    """The backend under test (conftest puts the plane fit's back afterwards)."""
     if request.param == "numba":
         pytest.importorskip("numba", reason="the compiled kernels need numba (pip install -e '.[perf]')")
     assert fk.set_backend(request.param) == request.param

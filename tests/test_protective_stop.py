@@ -349,10 +349,7 @@ def _plain_one_per_cell(mem, mem_t, memory_cell):
 @pytest.fixture(params=["numpy", "numba"])
 def scan_backend(request, monkeypatch):
     """Each test once with the scan's numpy code and once with its compiled kernels (when numba
-    is installed): the plane fit's backend decides both, and is put back afterwards."""
-    fit_kernels.backend()
-    for name in ("_backend", "_note", "_requested"):
-        monkeypatch.setattr(fit_kernels, name, getattr(fit_kernels, name))
+    is installed): the plane fit's backend decides both, and conftest puts it back afterwards."""
     if request.param == "numba":
         pytest.importorskip("numba", reason="the compiled kernels need numba (pip install -e '.[perf]')")
     assert fit_kernels.set_backend(request.param) == request.param
@@ -627,8 +624,6 @@ def test_the_depth_validity_bounds_compare_as_numpy_does(scan_backend):
 def test_the_scan_backend_follows_robot_kernels(monkeypatch):
     """One switch for every kernel: the scan runs compiled exactly when the plane fit does, and
     kernels that do not compile fall back to numpy under "auto" with the reason, or raise under "numba"."""
-    for name in ("_backend", "_note", "_requested"):
-        monkeypatch.setattr(fit_kernels, name, getattr(fit_kernels, name))
     monkeypatch.setattr(scan_kernels, "_nb", {})
     monkeypatch.setattr(scan_kernels, "_failed", "")
     monkeypatch.setenv("ROBOT_KERNELS", "numpy")
