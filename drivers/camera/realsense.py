@@ -321,9 +321,9 @@ class PlaybackFile(DeviceSource):
             return False
 
     def before_stop(self, device) -> None:
-        """Resume a paused playback: librealsense can crash (a segfault, seen once in our suite on
-        a loaded machine) stopping the pipeline of a paused recording; stopping a playing one is
-        its ordinary path."""
+        """Resume a paused playback, so that stopping its pipeline is librealsense's ordinary path
+        (stopping a paused recording's is not, and is where a crash in our suite first showed; its
+        cause was the recording's file moved away while open, which the tests no longer do)."""
         rs = load_pyrealsense2()
         try:
             pb = device.as_playback()
