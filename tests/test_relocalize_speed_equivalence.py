@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from drivers.sim.building import free_space_poses
-from drivers.sim.clutter import random_site_clutter
+from drivers.sim.clutter import parallel_panel, random_site_clutter
 from drivers.sim.render import DepthNoise, SimScene, render_depth_frame
 from robot.base.geometry import compose_se2, pose_to_T_ground_robot
 from robot.config import load_robot_config
@@ -19,13 +19,18 @@ from robot.localization.relocalize import (
     ANGLE_TOL,
     IN_WEIGHT,
     NOTHING_PREDICTED,
+    PANEL_MAX_OFFSET,
+    PANEL_MIN_OFFSET,
+    PANEL_MIN_PIXELS,
     PIXEL_CORRELATION,
     SEE_THROUGH,
     ObservedWall,
     Relocalizer,
     _cluster,
+    _density,
     _hypotheses,
     _label_edges,
+    _log_ratio,
     _MapWalls,
     _Scorer,
     _span_fits,
@@ -452,3 +457,80 @@ def test_the_compiled_wall_finder_is_the_numpy_code(monkeypatch):
                 m.setattr(fit_kernels, "backend", lambda: "numpy")
                 ref = extract_walls(frame, cam, np.random.default_rng(1))
             assert repr(got) == repr(ref)
+
+
+class ReferencePanelScorer(_Scorer):
+    """The score with the hiding panel's gains as first written: a mask per wall (np.unique over
+    the labels), np.median of the offsets, an error state per wall."""
+
+    def _panel_gains(self, panels, in_front):
+        offsets = {}
+        for views, lab, front, zm, _ray, denom, d, _sigma, _ll, _inlier in in_front:
+            s = zm * denom + d
+            idx = np.flatnonzero(front)
+            for k in np.unique(lab[idx]).tolist():
+                off = s[idx[lab[idx] == k]]
+                offsets.setdefault(self.coplanar.get(views[k].plane_id, views[k].plane_id), []).append(
+                    off[(off > PANEL_MIN_OFFSET) & (off <= PANEL_MAX_OFFSET)])
+        delta_of = {}
+        for pid, parts in offsets.items():
+            ok = np.concatenate(parts)
+            if len(ok) >= PANEL_MIN_PIXELS:
+                delta_of[pid] = float(np.median(ok))
+        if not delta_of:
+            return
+        for views, lab, front, zm, ray, _denom, _d, sigma, ll, inlier in in_front:
+            idx = np.flatnonzero(front)
+            done = set()
+            for k in np.unique(lab[idx]).tolist():
+                g = self.coplanar.get(views[k].plane_id, views[k].plane_id)
+                delta = delta_of.get(g)
+                if delta is None or g in done:
+                    continue
+                done.add(g)
+                pi = np.asarray(views[k].pi_camera, float)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    z_alt = -(pi[3] - delta) / (ray[idx] @ pi[:3])
+                    r_alt = (zm[idx] - z_alt) / sigma[idx]
+                on = (np.abs(r_alt) < 3.0) & (z_alt > 0.0)
+                if not on.any():
+                    continue
+                sel = idx[on]
+                ll_alt = _log_ratio(_density(r_alt[on], sigma[sel]), self.max_range)
+                acc = panels.setdefault(g, [0.0, 0])
+                acc[0] += float(np.maximum(ll_alt - ll[sel], 0.0).sum())
+                acc[1] += int(np.count_nonzero(~inlier[sel]))
+
+
+@pytest.mark.parametrize("name", ["paper_arena", "fzk_haus_ground", "institute_ground"])
+def test_the_hiding_panel_s_gain_is_the_previous_code_s(relocalizers, name):
+    """Panels parallel to the walls in view (and the site's clutter), the realistic camera, two
+    views: every score, with its panel credit, its two-panel and pixel-by-pixel variants, support
+    and walls, identical to the code before the panel gains were regrouped, to the bit; and the
+    panel credit is taken in some of them (the test reaches the code it compares)."""
+    rel = relocalizers[name]
+    rng = np.random.default_rng(23)
+    credited = 0
+    for pose in free_space_poses(rel.map, 3, rng, z=0.15):
+        pose = tuple(float(v) for v in pose)
+        T = pose_to_T_ground_robot(*pose)
+        walls = sorted((p for p in rel.map.planes if abs(p.normal[2]) < 0.1),
+                       key=lambda p: abs(float(np.dot(p.normal[:3], T[:3, 3])) + p.d))[:2]
+        clutter = [parallel_panel(p, float(rng.uniform(0.08, 0.3)), float(rng.uniform(0.5, 1.0)), rng) for p in walls]
+        clutter += list(random_site_clutter(rel.map, rng, 3, keep_clear=[pose[:2]]))
+        frames = [render_depth_frame(ROBOT, SimScene(rel.map, clutter=clutter), c.name, pose, rng=rng,
+                                     noise=DepthNoise.realistic()) for c in ROBOT.cameras]
+        views = [(frames, (0.0, 0.0, 0.0)), (frames, (0.0, 0.0, 0.2))]
+        for stride in (16, 32):
+            new = _Scorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
+            old = ReferencePanelScorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
+            for d in [(0.0, 0.0, 0.0)] + [tuple(rng.normal(0, (0.1, 0.1, 0.05))) for _ in range(4)]:
+                p = (pose[0] + d[0], pose[1] + d[1], pose[2] + d[2])
+                for coarse in (False, True):
+                    got = new.score(p, coarse=coarse)
+                    want = old.score(p, coarse=coarse)
+                    assert got == want
+                    assert (new.last_plain, new.last_two, new.last_see_through) == \
+                        (old.last_plain, old.last_two, old.last_see_through)
+                    credited += got[0] != new.last_plain  # a panel credited
+    assert credited > 0
