@@ -167,6 +167,18 @@ class ReferenceScorer(_Scorer):
         return total / PIXEL_CORRELATION, support, planes
 
 
+def score_pairs(rel: Relocalizer, views, reference, pose, rng: np.random.Generator, spread, n: int):
+    """(the product's scorer, the ``reference`` one, a pose, coarse) for both grid strides, at
+    ``pose`` and ``n`` poses around it (normal, std ``spread`` in x, y, phi), fine and coarse."""
+    for stride in (16, 32):
+        new = _Scorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
+        old = reference(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
+        for d in [(0.0, 0.0, 0.0)] + [tuple(rng.normal(0, spread)) for _ in range(n)]:
+            p = (pose[0] + d[0], pose[1] + d[1], pose[2] + d[2])
+            for coarse in (False, True):
+                yield new, old, p, coarse
+
+
 @pytest.fixture(scope="module")
 def relocalizers():
     return {m: Relocalizer(ROBOT, load_plane_map(f"config/maps/{m}.yaml")) for m in MAPS}
@@ -243,14 +255,9 @@ def test_the_verification_score_is_the_previous_code_s(relocalizers, name, monke
         scene = SimScene(rel.map, clutter=list(random_site_clutter(rel.map, rng, 4, keep_clear=[pose[:2]])))
         frames = [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=DepthNoise()) for c in ROBOT.cameras]
         views = [(frames, (0.0, 0.0, 0.0)), (frames, (0.0, 0.0, 0.3))]
-        for stride in (16, 32):
-            new = _Scorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
-            old = ReferenceScorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
-            for d in [(0.0, 0.0, 0.0)] + [tuple(rng.normal(0, (0.2, 0.2, 0.2))) for _ in range(5)]:
-                p = (pose[0] + d[0], pose[1] + d[1], pose[2] + d[2])
-                for coarse in (False, True):
-                    assert new.score(p, coarse=coarse) == old.score(p, coarse=coarse)
-                    assert new.last_see_through == old.last_see_through
+        for new, old, p, coarse in score_pairs(rel, views, ReferenceScorer, pose, rng, (0.2, 0.2, 0.2), 5):
+            assert new.score(p, coarse=coarse) == old.score(p, coarse=coarse)
+            assert new.last_see_through == old.last_see_through
 
 
 def test_a_large_map_is_ranked_by_blocks_with_the_same_result(relocalizers, monkeypatch):
@@ -521,16 +528,10 @@ def test_the_hiding_panel_s_gain_is_the_previous_code_s(relocalizers, name):
         frames = [render_depth_frame(ROBOT, SimScene(rel.map, clutter=clutter), c.name, pose, rng=rng,
                                      noise=DepthNoise.realistic()) for c in ROBOT.cameras]
         views = [(frames, (0.0, 0.0, 0.0)), (frames, (0.0, 0.0, 0.2))]
-        for stride in (16, 32):
-            new = _Scorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
-            old = ReferencePanelScorer(ROBOT, rel.map, views, rel.index, rel.max_range, stride=stride)
-            for d in [(0.0, 0.0, 0.0)] + [tuple(rng.normal(0, (0.1, 0.1, 0.05))) for _ in range(4)]:
-                p = (pose[0] + d[0], pose[1] + d[1], pose[2] + d[2])
-                for coarse in (False, True):
-                    got = new.score(p, coarse=coarse)
-                    want = old.score(p, coarse=coarse)
-                    assert got == want
-                    assert (new.last_plain, new.last_two, new.last_see_through) == \
-                        (old.last_plain, old.last_two, old.last_see_through)
-                    credited += got[0] != new.last_plain  # a panel credited
+        for new, old, p, coarse in score_pairs(rel, views, ReferencePanelScorer, pose, rng, (0.1, 0.1, 0.05), 4):
+            got = new.score(p, coarse=coarse)
+            assert got == old.score(p, coarse=coarse)
+            assert (new.last_plain, new.last_two, new.last_see_through) == \
+                (old.last_plain, old.last_two, old.last_see_through)
+            credited += got[0] != new.last_plain  # a panel credited
     assert credited > 0

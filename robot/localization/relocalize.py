@@ -760,7 +760,7 @@ class _Scorer:
             lab_sorted = lab_idx[order]
             bounds = [0] + (np.flatnonzero(lab_sorted[1:] != lab_sorted[:-1]) + 1).tolist() + [len(order)]
             ks = lab_sorted[bounds[:-1]].tolist() if len(order) else []
-            groups.append(ks)
+            groups.append((idx, ks))
             for j, k in enumerate(ks):
                 off = s[idx[order[bounds[j]:bounds[j + 1]]]]
                 offsets.setdefault(self.coplanar.get(views[k].plane_id, views[k].plane_id), []).append(
@@ -775,8 +775,7 @@ class _Scorer:
         if not delta_of:
             return
         with np.errstate(divide="ignore", invalid="ignore"):
-            for (views, _lab, front, zm, ray, _denom, _d, sigma, ll, inlier), ks in zip(in_front, groups):
-                idx = np.flatnonzero(front)
+            for (views, _lab, _front, zm, ray, _denom, _d, sigma, ll, inlier), (idx, ks) in zip(in_front, groups):
                 done = set()
                 ray_idx = zm_idx = sigma_idx = None
                 for k in ks:
