@@ -400,6 +400,15 @@ def test_socket_file_is_created_with_its_mode_and_group_and_stale_sockets_are_re
     s.bind(str(stale))
     s.close()  # bound, never listening: what a killed controller leaves
     fresh = bind_socket(replace(server.config, socket=str(stale)))
+    # Its name appears only once it listens: a client that finds the path before the event loop
+    # serves it is queued, not refused (a refusal here failed the live tests on a starved machine).
+    early = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    early.settimeout(HANG)
+    early.connect(str(stale))
+    fresh.setblocking(True)
+    conn, _ = fresh.accept()
+    conn.close()
+    early.close()
     fresh.close()
     regular = tmp_path / "not-a-socket"
     regular.write_text("precious")

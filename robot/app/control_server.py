@@ -100,7 +100,12 @@ def resolve_group(name: str, key: str) -> int:
 
 
 def bind_socket(config: ControlApiConfig) -> socket.socket:
-    """A bound Unix socket at ``config.socket`` with its mode and group already set."""
+    """A listening Unix socket at ``config.socket`` with its mode and group already set.
+
+    The socket listens before its name appears: a client that finds the path (robotctl started
+    beside the controller, a readiness probe) is queued in the backlog until the event loop
+    serves it, never refused with "nobody listens".
+    """
     path = os.path.abspath(config.socket)
     directory = os.path.dirname(path)
     try:
@@ -118,6 +123,7 @@ def bind_socket(config: ControlApiConfig) -> socket.socket:
         os.chmod(tmp, config.mode)
         if gid >= 0:
             os.chown(tmp, -1, gid)
+        sock.listen(config.max_clients + 1)  # asyncio listens again with its own backlog: harmless
         os.rename(tmp, path)  # only now can anyone connect, and the mode and group are already right
     except OSError as e:
         sock.close()
