@@ -975,9 +975,10 @@ def _controller_window(fps: float, seconds: float, alloc_seconds: float,
                 peak = tracemalloc.get_traced_memory()[1]
                 la = max(app.stats.localizations - la, 1)
                 # Still tracing: stopped only once the app and the rig have stopped their threads
-                # (below). tracemalloc.stop() while another thread allocates through numpy without
-                # the GIL (its sorts' buffers) frees the tables under it: a segfault now and then
-                # (CPython issue 128679, fixed in 3.12.9 and 3.13.2, not in 3.8 or 3.11).
+                # (below). tracemalloc.stop() while another thread is inside PyTraceMalloc_Track
+                # without the GIL (numpy's allocator calls it) frees the tables under it: a
+                # segfault now and then (CPython issue 128679, fixed in 3.12.9 and 3.13.2, not in
+                # 3.8 or 3.11).
                 # The simulator's own allocations (board emulator, fake cameras) are not the controller's.
                 flt = [tracemalloc.Filter(False, tracemalloc.__file__), tracemalloc.Filter(False, "*/drivers/sim/*"),
                        tracemalloc.Filter(False, "*/drivers/chassis/emulator.py"),
