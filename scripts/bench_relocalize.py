@@ -54,6 +54,7 @@ from robot.config import load_robot_config  # noqa: E402
 from robot.control.recovery import views_from_latest  # noqa: E402
 from robot.localization.relocalize import AMBIGUOUS, PANEL_MAX_OFFSET, UNIQUE, Relocalizer  # noqa: E402
 from robot.localization.roi import CameraGrid, predict_plane_views, rasterize_views  # noqa: E402
+from robot.localization.viewpoint import ViewpointPlanner  # noqa: E402
 from robot.maps.plane_map import load_plane_map  # noqa: E402
 
 ROBOT = load_robot_config(ROOT / "config" / "robot.yaml")
@@ -64,6 +65,13 @@ MAPS = ["paper_arena", "fzk_haus_ground", "institute_ground", "duplex_level1"]
 # poses that are not map-symmetric against 28 of 36 at 45 deg, the same poses.)
 TURN_EVERY = 3
 TURN_STEP_DEG = ROBOT.recovery.turn_step_deg
+# The planned move's table: where one view is ambiguous, on another third of the poses (those
+# after each turned one), the move robot/localization/viewpoint.py plans from its hypotheses,
+# driven with odometry off by MOVE_ODO_SCALE per axis and MOVE_ODO_PHI_DEG (1 sigma), then
+# relocalized with both views.
+MOVE_PHASE = 1
+MOVE_ODO_SCALE = 0.01
+MOVE_ODO_PHI_DEG = 0.3
 
 
 def _noise():
@@ -269,14 +277,30 @@ def frames_at(scene, pose, rng, noise):
     return [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=noise) for c in ROBOT.cameras]
 
 
+def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, frames, res, rng, noise) -> Tuple[str, float]:
+    """The verdict after the planned move from one ambiguous view ('no_move' if none is planned),
+    and the move's length (m)."""
+    move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined])
+    if move is None:
+        return "no_move", 0.0
+    moved = compose_se2(pose, (move.dx, move.dy, 0.0))
+    odo = (move.dx * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)), move.dy * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)),
+           math.radians(rng.normal(0.0, MOVE_ODO_PHI_DEG)))
+    first, more = views_from_latest([(frames, (0.0, 0.0, 0.0)), (frames_at(scene, moved, rng, noise), odo)])
+    return classify(rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30))), moved), move.distance
+
+
 def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[str, int], Dict[str, int], Dict[str, int],
-                                                          List[float], List[int], str]:
+                                                          List[float], List[int], str, Dict[str, int], List[float]]:
     """One stationary view per pose and, where it is not unique, the in-place turn of the recovery
     supervisor (recovery.turn_in_place): views at heading + k * turn_step_deg from the same position,
     each with its odometry heading (0.2 deg of error per step, accumulating), until unique or
     max_turn_deg; the verdict is for the last view's pose, as the robot uses it."""
     plane_map = load_plane_map(ROOT / "config" / "maps" / f"{name}.yaml")
     rel = Relocalizer(ROBOT, plane_map)
+    planner = ViewpointPlanner(ROBOT, plane_map, rel.index)
+    moved: Dict[str, int] = {}
+    move_lengths: List[float] = []
     rng = np.random.default_rng(seed)
     poses = free_space_poses(plane_map, n, rng, z=0.15)
     step = math.radians(TURN_STEP_DEG)
@@ -321,6 +345,13 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
             k += 1
         if two:
             _note(counts_two, k_single, sym, ptwin)
+        if i_pose % TURN_EVERY == MOVE_PHASE and k_single.startswith("ambiguous"):
+            k_move, length = planned_move(rel, planner, scene, pose, frames, res, rng, noise)
+            moved[k_move] = moved.get(k_move, 0) + 1
+            if sym:
+                moved["sym_" + k_move] = moved.get("sym_" + k_move, 0) + 1
+            if length > 0.0:
+                move_lengths.append(length)
         if not turning:
             continue
         views_used.append(len(views))
@@ -332,7 +363,7 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
         _note(turn, k_turn, sym_turn)
         if two:
             _note(turn_two, k_turn, sym_turn)
-    return counts, counts_two, turn, turn_two, times, views_used, clutter_desc
+    return counts, counts_two, turn, turn_two, times, views_used, clutter_desc, moved, move_lengths
 
 
 def _row(name, counts, total_label="", panels: bool = True):
@@ -350,6 +381,40 @@ def _row(name, counts, total_label="", panels: bool = True):
     ptwin = sum(v for k, v in counts.items() if k.startswith("ptwin_"))
     rest2 = rest - ptwin
     return row + f" {ptwin} | {u_ok} of {rest2} ({100.0 * u_ok / max(rest2, 1):.0f} %) |"
+
+
+def move_table(results) -> List[str]:
+    lines = [f"**One planned move where one view is ambiguous** (every {TURN_EVERY}rd pose, not those turned "
+             "above): the move `robot/localization/viewpoint.py` plans from the view's hypotheses (a straight "
+             "translation of up to 2 m, heading kept, clear of every wall in every hypothesis), driven with "
+             f"odometry off by {100 * MOVE_ODO_SCALE:g} % per axis and {MOVE_ODO_PHI_DEG:g} deg (1 sigma), then "
+             "relocalized with both views. Map-symmetric poses are in: a move can show what the first view could not.",
+             "",
+             "| map | ambiguous poses | no move planned | moved | correct unique | unique, off within its hidden-wall "
+             "bound | WRONG unique | ambiguous, truth in list | ambiguous, truth missing | none | of the moved "
+             "map-symmetric ones: correct unique |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    tot: Dict[str, int] = {}
+    lengths: List[float] = []
+    for name in MAPS + ["**all**"]:
+        if name == "**all**":
+            m = tot
+        else:
+            m = results[name][5]
+            lengths += results[name][6]
+            for k, v in m.items():
+                tot[k] = tot.get(k, 0) + v
+        plain = {k: v for k, v in m.items() if not k.startswith("sym_")}
+        n_all = sum(plain.values())
+        n_moved = n_all - plain.get("no_move", 0)
+        sym_moved = sum(v for k, v in m.items() if k.startswith("sym_") and k != "sym_no_move")
+        lines.append(f"| {name} | {n_all} | {plain.get('no_move', 0)} | {n_moved} | {plain.get('unique_ok', 0)} | "
+                     f"{plain.get('unique_bounded', 0)} | {plain.get('unique_wrong', 0)} | "
+                     f"{plain.get('ambiguous_with_truth', 0)} | {plain.get('ambiguous_without_truth', 0)} | "
+                     f"{plain.get('none', 0)} | {m.get('sym_unique_ok', 0)} of {sym_moved} |")
+    if lengths:
+        lines += ["", f"Move length: median {np.median(lengths):.2f} m, max {max(lengths):.2f} m."]
+    return lines + [""]
 
 
 PANEL_POSES = 40  # per map
@@ -468,8 +533,8 @@ def run(quick: bool = False) -> str:
     results = {}
     desc = ""
     for i, name in enumerate(MAPS):
-        counts, two, turn, turn_two, times, views, desc = run_map(name, n, 100 + i, noise)
-        results[name] = (counts, two, turn, turn_two, views)
+        counts, two, turn, turn_two, times, views, desc, moved, lengths = run_map(name, n, 100 + i, noise)
+        results[name] = (counts, two, turn, turn_two, views, moved, lengths)
         all_times[(name, False)] = times
     for turned in (False, True):
         title = (f"In-place turn where one view is not unique, every {TURN_EVERY}rd pose (steps of {TURN_STEP_DEG:g} deg up to "
@@ -478,7 +543,7 @@ def run(quick: bool = False) -> str:
         tot: Dict[str, int] = {}
         tot_two: Dict[str, int] = {}
         for name in MAPS:
-            counts, two, turn, turn_two, views = results[name]
+            counts, two, turn, turn_two, views = results[name][:5]
             c, t2 = (turn, turn_two) if turned else (counts, two)
             lines.append(_row(name, c, panels=not turned))
             lines.append(_row(name, t2, " (two walls in view)", panels=not turned))
@@ -505,6 +570,7 @@ def run(quick: bool = False) -> str:
                       f"1 deg; mostly degenerate fixes, whose loose direction comes from the pair solution): {len(listed)}"
                       + (f", position errors {', '.join(f'{1e3 * v:.0f}' for v in sorted(listed))} mm." if listed else "."),
                       ""]
+    lines += move_table(results)
     lines += panel_table(quick, noise)
     lines += ["| map | median s | p95 s (one view) |", "|---|---|---|"]
     for name in MAPS:

@@ -19,7 +19,8 @@ def register(sub) -> None:
 
 def cmd_relocalize(args) -> int:
     from robot.base.errors import InputError
-    from robot.localization.relocalize import NONE, Relocalizer
+    from robot.localization.relocalize import AMBIGUOUS, NONE, Relocalizer
+    from robot.localization.viewpoint import MAX_DISTANCE, ViewpointPlanner
     from robot.recording.snapshot import load_snapshot
 
     robot, plane_map = load_robot_and_map(args)
@@ -29,9 +30,15 @@ def cmd_relocalize(args) -> int:
         raise InputError(f"two snapshots from the same camera ({', '.join(cams)}): give one per camera")
     if args.region is not None and not all(math.isfinite(v) for v in args.region):
         raise InputError("--region: the four values must be finite numbers")
-    res = Relocalizer(robot, plane_map).relocalize(frames, region=args.region)
+    relocalizer = Relocalizer(robot, plane_map)
+    res = relocalizer.relocalize(frames, region=args.region)
+    move = None
+    if res.verdict == AMBIGUOUS:
+        # Where the robot could look from next so that the views tell the places apart.
+        move = ViewpointPlanner(robot, plane_map, relocalizer.index).plan(
+            [(h.x, h.y, h.phi) for h in res.hypotheses if h.refined])
     if args.json:
-        print_json(res.to_json())
+        print_json({**res.to_json(), "move": None if move is None else move.to_json()})
     else:
         print(f"verdict: {res.verdict}" + (f" ({res.reason})" if res.reason else "") + f"  [{res.ms:.0f} ms, "
               f"{res.walls_seen} walls in view]")
@@ -43,4 +50,10 @@ def cmd_relocalize(args) -> int:
             for hw in h.hidden_walls:  # a panel standing in front of this wall would put the robot farther along
                 print(f"     {hw['plane']} may be hidden by a panel: the robot may then be up to {hw['up_to_m']:.2f} m "
                       f"farther along ({hw['direction'][0]:.2f}, {hw['direction'][1]:.2f})")
+        if move is not None:
+            print(f"  a move that would tell {move.places} places apart ({move.alike} pairs alike after it, "
+                  f"{move.alike_here} here): {move.dx:+.2f} m along x, {move.dy:+.2f} m along y of the robot, "
+                  f"heading kept; then relocalize there")
+        elif res.verdict == AMBIGUOUS:
+            print(f"  no move up to {MAX_DISTANCE:.1f} m would tell these places apart better")
     return 1 if res.verdict == NONE else 0
