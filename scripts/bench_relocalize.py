@@ -283,9 +283,9 @@ def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, frame
     move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined])
     if move is None:
         return "no_move", 0.0
-    moved = compose_se2(pose, (move.dx, move.dy, 0.0))
+    moved = compose_se2(pose, (move.dx, move.dy, move.dphi))
     odo = (move.dx * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)), move.dy * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)),
-           math.radians(rng.normal(0.0, MOVE_ODO_PHI_DEG)))
+           move.dphi + math.radians(rng.normal(0.0, MOVE_ODO_PHI_DEG)))
     first, more = views_from_latest([(frames, (0.0, 0.0, 0.0)), (frames_at(scene, moved, rng, noise), odo)])
     return classify(rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30))), moved), move.distance
 
@@ -385,8 +385,8 @@ def _row(name, counts, total_label="", panels: bool = True):
 
 def move_table(results) -> List[str]:
     lines = [f"**One planned move where one view is ambiguous** (every {TURN_EVERY}rd pose, not those turned "
-             "above): the move `robot/localization/viewpoint.py` plans from the view's hypotheses (a straight "
-             "translation of up to 2 m, heading kept, clear of every wall in every hypothesis), driven with "
+             "above): the move `robot/localization/viewpoint.py` plans from the view's hypotheses (a turn on the "
+             "spot to face the way, then up to 2 m straight ahead, clear of every wall in every hypothesis), driven with "
              f"odometry off by {100 * MOVE_ODO_SCALE:g} % per axis and {MOVE_ODO_PHI_DEG:g} deg (1 sigma), then "
              "relocalized with both views. Map-symmetric poses are in: a move can show what the first view could not.",
              "",

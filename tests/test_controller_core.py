@@ -200,7 +200,7 @@ def _pipeline_app():
         def __init__(self):
             self.sets = []
 
-        def submit(self, fn, frames, coarse, localize):
+        def submit(self, fn, frames, coarse, localize, walls):
             self.sets.append(([f.camera for f in frames], concurrent.futures.Future()))
             return self.sets[-1][1]
 

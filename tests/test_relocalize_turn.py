@@ -1,16 +1,20 @@
-"""Relocalization with an in-place turn (recovery.turn_in_place), on the simulated clock."""
+"""Relocalization with an in-place turn (recovery.turn_in_place) or a planned move
+(recovery.move_to_tell_apart), on the simulated clock."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import replace
 
+import numpy as np
+
 from drivers.sim.render import Box
 from drivers.sim.world import WorldSettings
 from robot.config import load_robot_config
 from robot.config.recovery import RecoveryConfig
+from robot.control.core import ControllerCore
 from robot.control.path_file import PathPlan, StartPose, Waypoint
-from robot.control.recovery import AMBIGUOUS, CONFIRMING, RELOCALIZING, TRACKING, TURNING, RecoverySupervisor
+from robot.control.recovery import AMBIGUOUS, CONFIRMING, MOVING, RELOCALIZING, TRACKING, TURNING, RecoverySupervisor
 from robot.maps.plane_map import load_plane_map
 from robot.sim.runner import RunSettings, _PathRun
 
@@ -209,3 +213,147 @@ def test_walls_that_contradict_each_other_are_no_kidnap_but_depth_against_the_po
         for k in range(40):  # 8 s of such views
             core._note_recovery(view(against), 0.2 * k, 0)
         assert core.recovery.state == expected, (against, core.recovery.reason)
+
+
+# -- the planned move -------------------------------------------------------------------------------
+
+MOVING_ROBOT = replace(ROBOT, recovery=replace(ROBOT.recovery, move_to_tell_apart=True))
+TWO = [{"x": 0.0}, {"x": 1.0}]
+
+
+def test_a_planned_move_resolves_an_ambiguous_view_and_the_robot_resumes():
+    # In the house's bedroom one view fits three places, and turning is off: the robot moves.
+    run, res = _drive(MOVING_ROBOT, HOUSE, HOUSE_POSE, 60.0)
+    verdicts = [v for _, v in run.relocalizations]
+    assert verdicts[0] == "ambiguous" and verdicts[-1] == "unique", verdicts
+    states = [s for _, s in run.recovery_log]
+    assert MOVING in states and states.index(MOVING) < states.index(CONFIRMING) and TURNING not in states
+    t_unique, truth, views, _, hyps = run.at_relocalization[-1]
+    assert views == 2  # the first view and the one after the move, with its odometry pose
+    # The answer is for where the robot stands after the move, within millimetres.
+    assert _moved(hyps[0], truth) < 0.01 and abs(math.remainder(hyps[0]["phi"] - truth[2], 2 * math.pi)) < math.radians(0.5)
+    # A turn on the spot to face the way, then straight ahead (where the front camera looks), no
+    # faster than the move's speed: it went about as far and turned about as much as planned.
+    goal = run.core.recovery.move_goal
+    drive = [c for c in run.commands if c[4] and c[0] <= t_unique and math.hypot(c[1], c[2]) > 1e-9]
+    turn = [c for c in run.commands if c[4] and c[0] <= t_unique and abs(c[3]) > 1e-9]
+    assert drive and all(c[3] == 0.0 and c[1] > 0.99 * math.hypot(c[1], c[2]) for c in drive)
+    assert max(math.hypot(c[1], c[2]) for c in drive) <= MOVING_ROBOT.recovery.move_speed + 1e-9
+    assert turn and max(c[0] for c in turn) < min(c[0] for c in drive)
+    assert abs(_moved(truth, HOUSE_POSE) - math.hypot(goal[0], goal[1])) < 0.03
+    assert abs(math.remainder(truth[2] - HOUSE_POSE[2] - goal[2], 2 * math.pi)) < math.radians(2.5)
+    # Then it confirms, tracks and drives its path (back to where it was found).
+    assert TRACKING in states[states.index(CONFIRMING):]
+    assert res.finished, res.reason
+    assert max(r.error for r in res.targets) < 0.01
+
+
+def test_without_move_to_tell_apart_the_robot_stays_still_and_ambiguous():
+    assert RecoveryConfig().move_to_tell_apart is False
+    run, res = _drive(ROBOT, HOUSE, HOUSE_POSE, 5.0)
+    assert MOVING not in [s for _, s in run.recovery_log]
+    assert _moved(run.world.truth, HOUSE_POSE) < 1e-4 and not res.finished
+
+
+def test_an_obstacle_on_the_way_stops_the_move_and_the_verdict_stands():
+    # A person stands 30 cm along the move planned from this pose.
+    run0, _ = _drive(MOVING_ROBOT, HOUSE, HOUSE_POSE, 1.0)
+    dx, dy, _ = run0.core.recovery.move_goal
+    assert math.hypot(dx, dy) > 0.3
+    c, s = math.cos(HOUSE_POSE[2]), math.sin(HOUSE_POSE[2])
+    k = 0.3 / math.hypot(dx, dy)  # 30 cm along the move
+    px, py = HOUSE_POSE[0] + k * (c * dx - s * dy), HOUSE_POSE[1] + k * (s * dx + c * dy)
+    person = Box(px, py, 0.3, 0.3, 1.75, 0.0)
+    run, res = _drive(MOVING_ROBOT, HOUSE, HOUSE_POSE, 20.0, WorldSettings(obstacles=(person,)))
+    rec = run.core.recovery
+    assert MOVING in [s for _, s in run.recovery_log]
+    assert all(v != "unique" for _, v in run.relocalizations)
+    assert rec.state in (AMBIGUOUS, RELOCALIZING) and "move was stopped: protective" in rec.turn_note, rec.turn_note
+    # It never reached the person: the footprint's half-width plus the stop margin stays clear.
+    assert _moved(run.world.truth, (px, py)) > 0.15 + MOVING_ROBOT.safety.footprint_width / 2.0
+    assert not res.finished
+
+
+# -- the state machine alone ------------------------------------------------------------------------
+
+
+def test_the_supervisor_asks_for_a_plan_moves_and_relocalizes_with_the_same_sequence():
+    sup = RecoverySupervisor(RecoveryConfig(move_to_tell_apart=True))
+    sup.start_without_pose(0.0)
+    assert sup.wants_relocalization(0.0) and sup.view_index == 0
+    sup.on_verdict(0.1, "ambiguous", TWO)
+    assert sup.wants_move_plan and sup.state == AMBIGUOUS and sup.holding
+    assert not sup.wants_relocalization(10.0)  # not while the plan is pending
+    sup.move_planned(0.3, (-0.9, -0.4, -2.72))
+    assert sup.state == MOVING and sup.moving and sup.holding and sup.in_sequence
+    assert sup.move_goal == (-0.9, -0.4, -2.72) and "moving 0.98 m (turning -156 deg" in sup.reason
+    assert not sup.wants_relocalization(1.0)  # nothing to do while moving
+    sup.move_done(20.0)
+    assert sup.state == RELOCALIZING and sup.wants_relocalization(20.0) and sup.view_index == 1
+    sup.on_verdict(20.2, "unique", [{"x": 0.0}])
+    assert sup.state == CONFIRMING and not sup.in_sequence
+
+
+def test_at_most_max_moves_per_trigger_and_none_after_a_plan_found_nothing():
+    sup = RecoverySupervisor(RecoveryConfig(move_to_tell_apart=True, max_moves=1))
+    sup.start_without_pose(0.0)
+    sup.wants_relocalization(0.0)
+    sup.on_verdict(0.1, "ambiguous", TWO)
+    sup.move_planned(0.2, (0.5, 0.0, 0.0))
+    sup.move_done(10.0)
+    sup.wants_relocalization(10.0)
+    sup.on_verdict(10.1, "ambiguous", TWO)
+    assert not sup.wants_move_plan and sup.state == AMBIGUOUS and "after 1 move(s)" in sup.reason
+    assert sup.wants_relocalization(10.1 + sup.config.retry_period) and sup.view_index == 0
+    sup.on_verdict(13.0, "ambiguous", TWO)
+    assert not sup.wants_move_plan and sup.state == AMBIGUOUS
+    # No plan found: the verdict stands with why, and the retries do not ask again.
+    sup.force(20.0, "operator")
+    sup.wants_relocalization(20.0)
+    sup.on_verdict(20.1, "ambiguous", TWO)
+    assert sup.wants_move_plan
+    sup.move_planned(20.3, None, "no move up to 2.0 m would tell the places apart")
+    assert sup.state == AMBIGUOUS and "no move up to 2.0 m" in sup.reason and not sup.wants_move_plan
+    sup.wants_relocalization(20.3 + sup.config.retry_period)
+    sup.on_verdict(23.0, "ambiguous", TWO)
+    assert not sup.wants_move_plan
+    # 'none' and one hypothesis give nothing to tell apart: no plan.
+    sup.force(30.0, "operator")
+    sup.wants_relocalization(30.0)
+    sup.on_verdict(30.1, "none", [])
+    assert not sup.wants_move_plan and sup.state == RELOCALIZING
+
+
+def test_a_stopped_move_keeps_the_verdict_and_the_turn_comes_first():
+    sup = RecoverySupervisor(RecoveryConfig(move_to_tell_apart=True, turn_in_place=True, turn_step_deg=180.0,
+                                            max_turn_deg=180.0))
+    sup.start_without_pose(0.0)
+    sup.wants_relocalization(0.0)
+    sup.on_verdict(0.1, "ambiguous", TWO)
+    assert sup.state == TURNING and not sup.wants_move_plan
+    sup.turn_done(5.0)
+    sup.wants_relocalization(5.0)
+    sup.on_verdict(5.1, "ambiguous", TWO)  # looked round as far as it may: now a move
+    assert sup.wants_move_plan
+    sup.move_planned(5.2, (1.0, 0.0, 0.0))
+    sup.move_stopped(6.0, "protective stop: obstacle 0.20 m along the direction of travel")
+    assert sup.state == AMBIGUOUS and "move was stopped" in sup.reason and len(sup.hypotheses) == 2
+    assert sup.wants_relocalization(6.0 + sup.config.retry_period)
+    sup.on_verdict(9.0, "ambiguous", TWO)
+    assert sup.state == AMBIGUOUS and not sup.wants_move_plan  # neither turns nor moves again on its own
+    # Stray calls in another state change nothing.
+    sup.move_done(10.0)
+    sup.move_stopped(10.0, "x")
+    sup.move_planned(10.0, (1.0, 0.0, 0.0))
+    assert sup.state == AMBIGUOUS
+
+
+def test_while_the_recovery_holds_mapped_walls_explain_no_depth_point():
+    # At a pose in doubt a person may stand where a wall is expected: the scans go without a pose
+    # then (every point an obstacle) and the stop judges them as taken.
+    core = ControllerCore(ROBOT, plane_map=HOUSE)
+    core.set_pose(0.0, *HOUSE_POSE, np.diag([1e-4, 1e-4, 1e-4]))
+    assert core.walls_explain_obstacles
+    core.recovery.force(1.0, "operator")
+    assert core.recovery.holding and not core.walls_explain_obstacles
+    assert ControllerCore(ROBOT, plane_map=HOUSE, vision=False).walls_explain_obstacles

@@ -100,13 +100,15 @@ def test_one_planned_move_turns_an_ambiguous_house_view_into_the_right_unique_on
     # hypothesis (sampled along the way, against the walls' floor-plan segments).
     need = planner.radius + CLEARANCE
     for h in planner.places(hyps):
-        end = compose_se2(h, (move.dx, move.dy, 0.0))
+        end = compose_se2(h, (move.dx, move.dy, move.dphi))
         for t in np.linspace(0.0, 1.0, 41):
             p = np.array(h[:2]) + t * (np.array(end[:2]) - np.array(h[:2]))
             assert min(_point_segment(p, s) for s in planner.segments) >= need - 1e-9
+    # The robot faces the way: the front camera looks along it.
+    assert move.dphi == pytest.approx(math.atan2(move.dy, move.dx))
     # Driven (odometry 1 % and 0.3 deg off), a second view with the first tells the places apart.
-    moved = compose_se2(pose, (move.dx, move.dy, 0.0))
-    odo = (move.dx * 1.01, move.dy * 0.99, math.radians(0.3))
+    moved = compose_se2(pose, (move.dx, move.dy, move.dphi))
+    odo = (move.dx * 1.01, move.dy * 0.99, move.dphi + math.radians(0.3))
     frames2 = [render_depth_frame(ROBOT, scene, c.name, moved, rng=rng, noise=noise) for c in ROBOT.cameras]
     first, more = views_from_latest([(frames, (0.0, 0.0, 0.0)), (frames2, odo)])
     res2 = rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30)))

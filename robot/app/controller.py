@@ -545,7 +545,8 @@ class RobotApp:
             if localize:
                 self.recorder.write_depth(frame.t_capture, frame)  # only frames the localizer uses, within the budget
         self._set_in_worker = True
-        work = self._executor.submit(self._process_frames, frames, coarse, localize)
+        walls = self.core.walls_explain_obstacles
+        work = self._executor.submit(self._process_frames, frames, coarse, localize, walls)
         work.add_done_callback(functools.partial(self._set_processed_threadsafe, frames, coarse, localize))
 
     def _set_processed_threadsafe(self, frames: List[DepthFrame], coarse: list, localize: bool,
@@ -605,12 +606,13 @@ class RobotApp:
                 self.live_view.publish_roi(frame.t_capture, name, labels)
                 self.recorder.write_roi(frame.t_capture, name, labels)
 
-    def _process_frames(self, frames: Sequence[DepthFrame], coarse: Sequence[Optional[Tuple]], localize: bool) -> list:
-        """On the worker: each frame's obstacle scan, then (``localize``) its localization, or the
-        exception that stopped it."""
+    def _process_frames(self, frames: Sequence[DepthFrame], coarse: Sequence[Optional[Tuple]], localize: bool,
+                        walls: bool = True) -> list:
+        """On the worker: each frame's obstacle scan (``walls``: mapped walls explained at the coarse
+        pose), then (``localize``) its localization, or the exception that stopped it."""
         scaled = [calibrated_frame(f, self.robot.camera(f.camera).depth_scale) for f in frames]
         for frame, prior in zip(scaled, coarse):
-            self._scan_obstacles(frame, None if prior is None else prior[0])
+            self._scan_obstacles(frame, None if prior is None or not walls else prior[0])
         if not localize:
             return []
         out: list = []
@@ -624,12 +626,16 @@ class RobotApp:
     async def _recovery_task(self) -> None:
         """Relocalize when the recovery supervisor asks (no pose, lost, kidnapped, a saved pose the
         cameras contradict): on the first frame of every camera taken after the request, off the loop.
-        After an in-place turn (recovery.turn_in_place) the earlier views of the sequence go with
-        it, each with its odometry pose; the answer is for where the robot stands now."""
+        After an in-place turn (recovery.turn_in_place) or a move (recovery.move_to_tell_apart) the
+        earlier views of the sequence go with it, each with its odometry pose; the answer is for
+        where the robot stands now. The move is planned here, off the loop, when the supervisor
+        asks for one."""
         from robot.control.recovery import views_from_latest
         from robot.localization.relocalize import Relocalizer
+        from robot.localization.viewpoint import ViewpointPlanner, plan_recovery_move
 
         relocalizer: Optional[Relocalizer] = None
+        planner: Optional[ViewpointPlanner] = None
         views: List[Tuple[List[DepthFrame], Tuple[float, float, float]]] = []
         while True:
             await asyncio.sleep(RECOVERY_POLL)
@@ -667,8 +673,19 @@ class RobotApp:
                          math.degrees(h.phi), len(views))
             else:
                 log.warning("relocalization %s from %d view(s): %s", res.verdict, len(views), res.reason)
-            self.core.recovery.on_verdict(time.monotonic(), res.verdict, [h.to_json() for h in res.hypotheses[:8]],
-                                          res.reason)
+            rec = self.core.recovery
+            rec.on_verdict(time.monotonic(), res.verdict, [h.to_json() for h in res.hypotheses[:8]], res.reason)
+            if rec.wants_move_plan:
+                cfg = self.robot.recovery
+                if planner is None:
+                    planner = await self._loop.run_in_executor(self._executor, ViewpointPlanner, self.robot,
+                                                               self.plane_map, relocalizer.index)
+                move, why = await self._loop.run_in_executor(self._executor, plan_recovery_move, planner,
+                                                             res.hypotheses, cfg.move_max_distance, cfg.move_clearance)
+                if move is not None:
+                    log.warning("relocalization ambiguous: moving (%.2f, %.2f) m in the robot frame for a view that "
+                                "tells the places apart", move[0], move[1])
+                rec.move_planned(time.monotonic(), move, why)
 
     async def _frames_after(self, t: float) -> List[DepthFrame]:
         """The first frame of every camera captured after ``t`` (the robot stands still meanwhile)."""

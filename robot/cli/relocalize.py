@@ -52,8 +52,8 @@ def cmd_relocalize(args) -> int:
                       f"farther along ({hw['direction'][0]:.2f}, {hw['direction'][1]:.2f})")
         if move is not None:
             print(f"  a move that would tell {move.places} places apart ({move.alike} pairs alike after it, "
-                  f"{move.alike_here} here): {move.dx:+.2f} m along x, {move.dy:+.2f} m along y of the robot, "
-                  f"heading kept; then relocalize there")
+                  f"{move.alike_here} here): turn {math.degrees(move.dphi):+.0f} deg on the spot, then drive "
+                  f"{move.distance:.2f} m straight ahead; then relocalize there")
         elif res.verdict == AMBIGUOUS:
             print(f"  no move up to {MAX_DISTANCE:.1f} m would tell these places apart better")
     return 1 if res.verdict == NONE else 0

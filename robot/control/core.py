@@ -26,7 +26,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 import numpy as np
 
 from robot.base.errors import RobotError
-from robot.base.geometry import integrate_twist
+from robot.base.geometry import compose_se2, integrate_twist, invert_se2
 from robot.base.samples import WheelOdometry
 from robot.config import RobotConfig
 from robot.control.health import HealthSupervisor
@@ -48,6 +48,9 @@ IDLE = "idle"
 PATH = "path"
 TELEOP = "teleop"
 TURN = "recovery_turn"  # Command.state of the relocalization's in-place turn
+MOVE = "recovery_move"  # Command.state of the relocalization's straight move
+MOVE_DONE_TOL = 0.005  # m short of the move's end that counts as there (by wheel odometry)
+MOVE_KP = 1.0  # 1/s: the move's approach to its end, below the braking curve
 TURN_DONE_TOL = math.radians(2.0)  # rad short of the next view's heading that counts as there (odometry gives the exact angle)
 TURN_KP = 2.0  # 1/s: the turn's approach to its heading, below the braking curve
 
@@ -127,6 +130,16 @@ class ControllerCore:
         c = robot.control
         self._turn_lim = AxisLimiter(min(robot.recovery.turn_rate, c.max_yaw_rate), c.max_yaw_accel, c.max_yaw_jerk)
         self._turn_t: Optional[float] = None
+        # The relocalization's move (a turn to face the way, then straight ahead): its own limiters
+        # (speed along the move, yaw rate), the odometry pose (view 0's frame) where it started,
+        # and its direction in the robot frame.
+        self._move_lim = AxisLimiter(min(robot.recovery.move_speed, c.max_speed), c.max_accel, c.max_jerk)
+        self._move_yaw_lim = AxisLimiter(min(robot.recovery.turn_rate, c.max_yaw_rate), c.max_yaw_accel, c.max_yaw_jerk)
+        self._move_t: Optional[float] = None
+        self._move_start: Optional[Tuple[float, float, float]] = None
+        self._move_yaw0 = 0.0  # unwrapped odometry heading where it started
+        self._move_facing = False  # the turn to face the way is done
+        self._move_dir = (1.0, 0.0)
         self._t_odom_seen = -math.inf  # newest wheel odometry, pose or not (the turn needs it fresh)
         self.vision = vision
         self.kinematics = MecanumKinematics.from_config(robot.chassis)
@@ -281,6 +294,14 @@ class ControllerCore:
             if self.calibration is not None and report.accepted:
                 self.calibration.add_localization(raw, t_capture, report.accepted, self.pose(t_capture)[0])
         return reports
+
+    @property
+    def walls_explain_obstacles(self) -> bool:
+        """Whether the protective stop may take depth points on mapped walls (at the filter's pose)
+        for those walls. Not while the recovery holds the robot: the pose is missing or in doubt
+        then, and at a wrong pose a person could stand where a wall is expected (the in-place turn
+        and the move see every point as an obstacle)."""
+        return not (self.vision and self.recovery.holding)
 
     def relocalization_due(self, t: float) -> bool:
         """Whether the shell should relocalize now: asked for by the recovery supervisor, and the
@@ -480,7 +501,7 @@ class ControllerCore:
         if self.health.note_tick(t, 1.0 / self.robot.control.rate) is not None:
             self._restart_from_rest()  # a stall or a link change: the board has stopped the wheels
         if not self.filter.initialized:
-            turn = self._recovery_turn(t, None) if self.vision else None
+            turn = self._recovery_motion(t) if self.vision else None
             return turn if turn is not None else self._silent(t, "no pose yet")
         # One pose for the quality and the command: the filter's memo gave the same twice.
         (x, y, phi), P = self.pose(t)
@@ -508,10 +529,11 @@ class ControllerCore:
             cmd = Command(vx, vy, wz, t, TELEOP, 0)
         else:
             cmd = Command(0.0, 0.0, 0.0, t, IDLE, 0)
-        turn = self._recovery_turn(t, (x, y, phi)) if self.vision else None
-        if turn is not None:  # the path or teleop is held (scale 0); the turn's command replaces theirs
+        turn = self._recovery_motion(t) if self.vision else None
+        if turn is not None:  # the path or teleop is held (scale 0); the turn's or move's command replaces theirs
             return turn
-        cmd, reason = self._protective_stop(t, cmd, (x, y, phi), reason)
+        # (While the recovery holds, the scans come without a pose: the stop sees them as taken.)
+        cmd, reason = self._protective_stop(t, cmd, (x, y, phi) if self.walls_explain_obstacles else None, reason)
         if not self.health.chassis_ok:
             return self._silent(t, self._chassis_reason or "chassis link down", cmd)
         if not self.health.command_fresh(cmd.t_issued, t):
@@ -539,10 +561,81 @@ class ControllerCore:
         if t - self._t_odom_seen > self.health.config.max_command_age:
             return f"no wheel odometry for {t - self._t_odom_seen:.2f} s"
         if self.mode == TELEOP:
-            return "the robot is teleoperated: it does not turn by itself"
+            return "the robot is teleoperated: it does not move by itself"
         return ""
 
-    def _recovery_turn(self, t: float, pose: Optional[Tuple[float, float, float]]) -> Optional[ControlOutput]:
+    def _recovery_motion(self, t: float) -> Optional[ControlOutput]:
+        """The relocalization's in-place turn or move (at most one of them runs)."""
+        move = self._recovery_move(t)
+        return move if move is not None else self._recovery_turn(t)
+
+    def _recovery_move(self, t: float) -> Optional[ControlOutput]:
+        """The relocalization's move while the supervisor asks for it, and its braking to still
+        after it; None when neither.
+
+        ``recovery.move_goal`` (dx, dy, dphi) from where the move started, by wheel odometry: first
+        a turn on the spot to face the way (dphi), then straight ahead, so that the front camera
+        and the protective stop see where the robot goes; within the robot's limits, at
+        ``recovery.move_speed``. Anything that limits or stops it (something in the way, no fresh
+        depth, a fault, the link, stale odometry, teleop) ends the move for good: the supervisor
+        keeps the last verdict."""
+        rec = self.recovery
+        lim, yaw_lim = self._move_lim, self._move_yaw_lim
+        if not rec.moving and lim.v == 0.0 and lim.a == 0.0 and yaw_lim.v == 0.0 and yaw_lim.a == 0.0:
+            self._move_t, self._move_start, self._move_facing = None, None, False
+            return None
+        c = self.robot.control
+        dt = 1.0 / c.rate if self._move_t is None else min(max(t - self._move_t, 0.0), c.max_dt)
+        self._move_t = t
+        if rec.moving and self._move_start is None:
+            self._move_start, self._move_yaw0, self._move_facing = self._turn_rel, self._turn_yaw, False
+        if rec.moving:
+            why = self._turn_blocker(t)
+            if why:
+                rec.move_stopped(t, why)
+                if self.health.holding or not self.health.chassis_ok:
+                    lim.reset()  # the board has stopped the wheels: nothing to brake
+                    yaw_lim.reset()
+        wz_target, v_target, dist = 0.0, 0.0, math.inf
+        if rec.moving and self._move_start is not None:
+            gx, gy, gphi = rec.move_goal
+            if not self._move_facing:
+                yaw_left = self._move_yaw0 + gphi - self._turn_yaw
+                if abs(yaw_left) <= TURN_DONE_TOL:
+                    self._move_facing = True
+                else:
+                    wz_target = approach_speed(yaw_left, yaw_lim.max_speed, 0.5 * c.max_yaw_accel, TURN_KP)
+            if self._move_facing:
+                goal = compose_se2(self._move_start, (gx, gy, gphi))
+                rx, ry, _ = compose_se2(invert_se2(self._turn_rel), goal)
+                dist = math.hypot(rx, ry)
+                if dist > 1e-9:
+                    self._move_dir = (rx / dist, ry / dist)
+                if yaw_lim.v == 0.0 and yaw_lim.a == 0.0:  # the turn has braked: straight ahead now
+                    v_target = approach_speed(dist, lim.max_speed, 0.5 * c.max_accel, MOVE_KP)
+        wz = yaw_lim.step(wz_target, dt)
+        v = lim.step(v_target, dt)
+        ux, uy = self._move_dir
+        cmd = Command(v * ux, v * uy, wz, t, MOVE, 0)
+        # Every depth point is an obstacle here: the pose is missing or in doubt (walls_explain_obstacles).
+        limited, reason = self._protective_stop(t, cmd, None, "")
+        if limited.vx != cmd.vx or limited.vy != cmd.vy or limited.wz != cmd.wz:
+            if rec.moving:
+                rec.move_stopped(t, reason or "the protective stop")
+            lim.reset()  # the stop cut the motion at once: the limiters start from rest again
+            yaw_lim.reset()
+            cmd = limited
+        elif rec.moving and self._move_facing and dist <= MOVE_DONE_TOL:
+            rec.move_done(t)  # brakes from here (the target drops to zero); relocalizes once still
+        reason = f"{rec.state}: {rec.reason}" + (f"; {reason}" if reason else "")
+        if not self.health.chassis_ok:
+            return self._silent(t, self._chassis_reason or "chassis link down", cmd)
+        wheels = self._wheels(cmd.vx, cmd.vy, cmd.wz)
+        if wheels is None:
+            return self._silent(t, "non-finite wheel command refused", cmd)
+        return ControlOutput(t, cmd, wheels, 0.0, reason)
+
+    def _recovery_turn(self, t: float) -> Optional[ControlOutput]:
         """The relocalization's in-place turn while the supervisor asks for it, and its braking to
         still after it; None when neither (the normal command stands).
 
@@ -571,7 +664,8 @@ class ControllerCore:
             target = 0.0
         wz = lim.step(target, dt)
         cmd = Command(0.0, 0.0, wz, t, TURN, 0)
-        limited, reason = self._protective_stop(t, cmd, pose, "")
+        # Every depth point is an obstacle here: the pose is missing or in doubt (walls_explain_obstacles).
+        limited, reason = self._protective_stop(t, cmd, None, "")
         if limited.wz != wz or limited.vx != 0.0 or limited.vy != 0.0:
             if rec.turning:
                 rec.turn_stopped(t, reason or "the protective stop")

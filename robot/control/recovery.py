@@ -21,6 +21,12 @@ States:
   stop, a fault): then the verdict stands and is reported as without a turn. A sequence that ended
   so is not turned again until a new trigger (or an operator's request): a robot that has looked
   all round, or was stopped by something beside it, does not start moving on its own.
+- ``moving`` (only with ``move_to_tell_apart``): the sequence ended ambiguous (after the turn, if
+  any) and the shell planned a short move (``robot.localization.viewpoint``: a turn on the spot
+  to face the way, then straight ahead) after which the map predicts different depth for the
+  hypotheses; the core drives it by wheel odometry, braked to still, then the next
+  relocalization uses every view of the sequence and the new one. At most ``max_moves`` per trigger; a move that was stopped (the protective
+  stop, a fault) ends the sequence as a stopped turn does.
 - ``confirming``: a unique verdict set the pose; the robot holds until the normal localizer has
   accepted ``confirm_updates`` plane updates from it.
 
@@ -49,6 +55,7 @@ RELOCALIZING = "relocalizing"
 AMBIGUOUS = "ambiguous"
 CONFIRMING = "confirming"
 TURNING = "turning"
+MOVING = "moving"
 
 FULL_TURN = 2.0 * math.pi
 _TURN_EPS = 1e-6  # rad: a view exactly at max_turn_deg is still taken
@@ -89,6 +96,10 @@ class RecoverySupervisor:
     _may_turn: bool = True  # False once a sequence has turned as far as it may, or its turn was stopped
     _after_turn: Tuple[str, str] = (RELOCALIZING, "")  # (state, reason) the verdict left, if the turn stops
     turn_note: str = ""  # how the last turn of this trigger ended, repeated in the retries' reasons
+    # The move of an ambiguous sequence: its end (dx, dy, dphi) in the robot frame where it starts.
+    move_goal: Tuple[float, float, float] = (0.0, 0.0, 0.0)
+    wants_move_plan: bool = False  # the shell should plan a move from ``hypotheses`` (move_planned)
+    _moves: int = 0  # moves made for this trigger
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -155,6 +166,8 @@ class RecoverySupervisor:
             return
         turned = self.turn_goal
         after = f" after turning {math.degrees(turned):.0f} deg in place" if turned > 0.0 else ""
+        if self._moves and self._sequence_open:
+            after += f"{' and' if after else ' after'} {self._moves} move(s) to tell them apart"
         if verdict == "ambiguous":
             state = AMBIGUOUS
             why = (f"ambiguous: {len(hypotheses)} poses explain the views" + after
@@ -169,14 +182,66 @@ class RecoverySupervisor:
             self.state, self.turn_goal = TURNING, goal
             self.reason = f"turning in place to {math.degrees(goal):.0f} deg for another view ({why})"
             return
+        if (verdict == "ambiguous" and self.config.move_to_tell_apart and may_turn and self._may_turn
+                and self._sequence_open and self._moves < self.config.max_moves and len(hypotheses) > 1):
+            # Looked round as far as it may (or does not turn): ask the shell for a move.
+            self._after_turn = (state, why)
+            self.state, self.reason, self.wants_move_plan = state, f"{why}; planning a move to tell them apart", True
+            return
+        self._close_sequence(t, state, why, turned)
+
+    def _close_sequence(self, t: float, state: str, why: str, turned: float) -> None:
         if self._sequence_open and self._views > 1:
             self._may_turn = False  # it has looked as far round as it may: no new turn on the retries
-            self.turn_note = f"no new turn: it turned {math.degrees(turned):.0f} deg in place already"
+            self.turn_note = (f"no new turn: it turned {math.degrees(turned):.0f} deg in place already"
+                              + (f" and moved {self._moves} time(s)" if self._moves else ""))
         elif self.turn_note and self.config.turn_in_place:
             why = f"{why}; {self.turn_note}"
         self._sequence_open = False
         self.state, self.reason = state, why
         self._next_try = t + self.config.retry_period
+
+    def move_planned(self, t: float, move: Optional[Tuple[float, float, float]], why: str = "") -> None:
+        """The shell's plan for ``wants_move_plan``: the move's end (dx, dy, dphi) in the robot frame,
+        or None (no move up to ``move_max_distance`` tells the hypotheses apart; ``why`` says so)."""
+        if not self.wants_move_plan:
+            return
+        self.wants_move_plan = False
+        state, reason = self._after_turn
+        if move is None:
+            note = why or "no move would tell the places apart"
+            self._close_sequence(t, state, f"{reason}; {note}", self.turn_goal)
+            self._may_turn, self.turn_note = False, note  # the retries look from here, without turning or moving
+            return
+        self._moves += 1
+        self.state, self.move_goal = MOVING, (float(move[0]), float(move[1]), float(move[2]))
+        self.reason = (f"moving {math.hypot(move[0], move[1]):.2f} m (turning {math.degrees(move[2]):+.0f} deg to "
+                       f"face the way first) for a view that tells the places apart ({reason})")
+
+    def move_done(self, t: float) -> None:
+        """The core has driven the move and braked: relocalize with one more view."""
+        if self.state != MOVING:
+            return
+        self.state = RELOCALIZING
+        self.reason = (f"relocalizing with view {self._views + 1} after moving "
+                       f"{math.hypot(self.move_goal[0], self.move_goal[1]):.2f} m")
+        self._next_try = t
+        self._requested = False
+
+    def move_stopped(self, t: float, why: str) -> None:
+        """The move could not go on (the protective stop, a fault): the last verdict stands."""
+        if self.state != MOVING:
+            return
+        state, reason = self._after_turn
+        self.turn_note = f"the move was stopped: {why}"
+        self.state, self.reason = state, f"{reason}; {self.turn_note}"
+        self._sequence_open = False
+        self._may_turn = False
+        self._next_try = t + self.config.retry_period
+
+    @property
+    def moving(self) -> bool:
+        return self.state == MOVING
 
     def turn_done(self, t: float) -> None:
         """The core has turned to ``turn_goal`` and braked: relocalize with one more view."""
@@ -216,6 +281,7 @@ class RecoverySupervisor:
         self.hypotheses = []
         self._requested = False
         self._sequence_open, self._may_turn, self.turn_goal, self.turn_note = False, True, 0.0, ""
+        self._moves, self.wants_move_plan = 0, False
         self.start_from_saved_pose(t)
 
     # -- outputs -----------------------------------------------------------------------------
@@ -228,11 +294,11 @@ class RecoverySupervisor:
     @property
     def holding(self) -> bool:
         """The robot must not move (it does not know where it is, or has not confirmed it)."""
-        return self.state in (RELOCALIZING, AMBIGUOUS, CONFIRMING, TURNING)
+        return self.state in (RELOCALIZING, AMBIGUOUS, CONFIRMING, TURNING, MOVING)
 
     def wants_relocalization(self, t: float) -> bool:
         """True once per attempt: the shell should relocalize on the next frames."""
-        if self._requested or self.state not in (RELOCALIZING, AMBIGUOUS) or t < self._next_try:
+        if self._requested or self.wants_move_plan or self.state not in (RELOCALIZING, AMBIGUOUS) or t < self._next_try:
             return False
         self._requested = True
         self.attempts += 1
@@ -249,8 +315,10 @@ class RecoverySupervisor:
         self._next_try = t
         self._requested = False
         self._sequence_open, self._may_turn, self.turn_goal, self.turn_note = False, True, 0.0, ""
+        self._moves, self.wants_move_plan = 0, False
 
     def to_json(self) -> dict:
         return {"state": self.state, "reason": self.reason, "attempts": self.attempts, "hypotheses": self.hypotheses,
                 "views": self._views if self._sequence_open or self.state == TURNING else 0,
-                "turn_goal_deg": math.degrees(self.turn_goal) if self.state == TURNING else None}
+                "turn_goal_deg": math.degrees(self.turn_goal) if self.state == TURNING else None,
+                "move_goal": list(self.move_goal) if self.state == MOVING else None}

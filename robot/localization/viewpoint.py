@@ -6,8 +6,8 @@ stands, predict the same depth. Turning further shows the same headings again. M
 a step to one side puts other walls, another door or a room's end into view, and the
 hypotheses then predict different depth there. This module picks that step.
 
-For every candidate move (a straight translation in the robot frame, heading kept: a Mecanum
-base moves so without turning) and every pose hypothesis, it predicts the depth image each
+For every candidate move (a turn on the spot to face the way, then straight ahead: the front
+camera, and with it the protective stop, sees where the robot goes) and every pose hypothesis, it predicts the depth image each
 camera would see after the move, from the map alone, on a coarse pixel grid. A pixel tells two
 hypotheses apart where their predicted depths differ by more than ``DEPTH_APART``, or where one
 predicts a wall nearer than ``SURE_RANGE`` and the other none (farther, a D435i often returns
@@ -16,7 +16,7 @@ apart. The move taken leaves the fewest alike pairs, fewer than where the robot 
 equals the shortest (the least driving while not localized). Hypotheses at the same place
 (``SAME_PLACE_XY``, ``SAME_PLACE_PHI``) count once. A move must keep the robot's circumscribed
 circle plus ``clearance`` off every wall in *every* hypothesis (the robot is at one of them, not
-known which); site clutter is left to the protective stop, which stays in force while the
+known which). Site clutter is left to the protective stop, which stays in force while the
 robot moves.
 
 Measured (2026-12-07, the relocalization benchmark's scenes, realistic camera, site clutter):
@@ -63,10 +63,11 @@ BODY_BAND = (0.02, 0.6)
 
 @dataclass(frozen=True)
 class Move:
-    """A straight move in the robot frame of the present view, heading kept."""
+    """A move from the present view's robot frame: turn by ``dphi`` to face (dx, dy), then drive there."""
 
     dx: float  # m, along robot x
     dy: float  # m, along robot y
+    dphi: float  # rad, the heading of the way, turned on the spot first
     alike: int  # pairs of places the predicted views after the move do not tell apart
     alike_here: int  # the same where the robot stands
     places: int  # places among the hypotheses (those nearer than SAME_PLACE_* count once)
@@ -76,7 +77,8 @@ class Move:
         return math.hypot(self.dx, self.dy)
 
     def to_json(self) -> dict:
-        return {"dx": round(self.dx, 4), "dy": round(self.dy, 4), "distance": round(self.distance, 4),
+        return {"dx": round(self.dx, 4), "dy": round(self.dy, 4), "dphi": round(self.dphi, 6),
+                "distance": round(self.distance, 4),
                 "alike_pairs": self.alike, "alike_pairs_here": self.alike_here, "places": self.places}
 
 
@@ -209,7 +211,9 @@ class ViewpointPlanner:
         return out
 
     def clear(self, poses: Sequence[Pose], move: Tuple[float, float], clearance: float) -> bool:
-        """Whether the straight move keeps the robot ``clearance`` off every wall from every pose."""
+        """Whether the move to (dx, dy) (robot frame) keeps the robot ``clearance`` off every wall
+        from every pose, the turn on the spot at its start included (the circle is the one the
+        footprint sweeps)."""
         need = self.radius + clearance
         for p in poses:
             end = compose_se2(p, (move[0], move[1], 0.0))
@@ -219,8 +223,8 @@ class ViewpointPlanner:
 
     def plan(self, poses: Sequence[Pose], max_distance: float = MAX_DISTANCE, clearance: float = CLEARANCE,
              min_share: float = MIN_SHARE, steps: int = 4) -> Optional[Move]:
-        """The move (up to ``max_distance``, in ``steps`` lengths and DIRECTIONS directions) after
-        which the fewest pairs of ``poses`` (the robot's present pose hypotheses, best first) look
+        """The move (up to ``max_distance``, in ``steps`` lengths and DIRECTIONS directions, the
+        robot turned to face the way) after which the fewest pairs of ``poses`` (the robot's present pose hypotheses, best first) look
         alike; None if no move leaves fewer than where the robot stands, or there is one place."""
         places = self.places([(float(p[0]), float(p[1]), float(p[2])) for p in poses])
         if len(places) < 2 or not max_distance > 0.0:
@@ -233,13 +237,24 @@ class ViewpointPlanner:
             dist = max_distance * k / max(1, steps)
             for j in range(DIRECTIONS):
                 a = 2.0 * math.pi * j / DIRECTIONS
-                move = (dist * math.cos(a), dist * math.sin(a))
-                if not self.clear(places, move, clearance):
+                move = (dist * math.cos(a), dist * math.sin(a), float(math.remainder(a, 2.0 * math.pi)))
+                if not self.clear(places, move[:2], clearance):
                     continue
-                alike = self.alike_pairs([compose_se2(p, (move[0], move[1], 0.0)) for p in places], min_share)
+                alike = self.alike_pairs([compose_se2(p, move) for p in places], min_share)
                 if alike < here and (best is None or alike < best.alike):
-                    best = Move(move[0], move[1], alike, here, len(places))
+                    best = Move(move[0], move[1], move[2], alike, here, len(places))
         return best
+
+
+def plan_recovery_move(planner: ViewpointPlanner, hypotheses: Sequence, max_distance: float,
+                       clearance: float) -> Tuple[Optional[Tuple[float, float, float]], str]:
+    """The recovery's move from a relocalization's hypotheses (refined ones, best first): its end
+    (dx, dy, dphi) in the robot frame, or None and why not."""
+    poses = [(h.x, h.y, h.phi) for h in hypotheses if h.refined]
+    move = planner.plan(poses, max_distance, clearance)
+    if move is None:
+        return None, f"no move up to {max_distance:.1f} m would tell the places apart"
+    return (move.dx, move.dy, move.dphi), ""
 
 
 def apart_share(z_a: np.ndarray, z_b: np.ndarray) -> float:

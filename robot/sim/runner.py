@@ -34,6 +34,7 @@ from robot.fusion.calibration_filter import CalibrationFilter
 from robot.fusion.quality import LOCALIZED
 from robot.localization.localizer import Localizer
 from robot.localization.relocalize import Relocalizer
+from robot.localization.viewpoint import ViewpointPlanner, plan_recovery_move
 from robot.maps.plane_map import PlaneMap
 from robot.sim.faults import FaultPlan, FaultyLine
 
@@ -188,6 +189,7 @@ class _PathRun:
         self.localizer = Localizer(robot, plane_map) if settings.vision else None
         self.plane_map = plane_map
         self._relocalizer: Optional[Relocalizer] = None
+        self._planner: Optional[ViewpointPlanner] = None
         self.relocalizations: List[Tuple[float, str]] = []  # (t, verdict)
         self.relocalization_views: List[Tuple[float, Tuple[float, float, float]]] = []  # (t, odometry pose from view 0)
         self._views: List[Tuple[list, Tuple[float, float, float]]] = []  # of the present relocalization sequence
@@ -289,8 +291,9 @@ class _PathRun:
             self._schedule_at(self.now_us + self.vision_us, "capture")
             return True
         pose, P = self.core.coarse_pose(t) if self.core.initialized else (None, None)
+        scan_pose = pose if self.core.walls_explain_obstacles else None
         for f in frames:  # the protective stop sees every frame, with or without vision fusion
-            self.core.safety.update_scan(f.camera, t, f.depth, f.K, pose, float(f.depth_scale))
+            self.core.safety.update_scan(f.camera, t, f.depth, f.K, scan_pose, float(f.depth_scale))
         if self.localizer is not None and self.core.relocalization_due(t):
             self._relocalize(t, frames)
         if self.localizer is not None and self.core.initialized:
@@ -321,6 +324,12 @@ class _PathRun:
             h = res.hypotheses[0]
             self.core.set_pose(t, h.x, h.y, h.phi, np.asarray(h.cov))
         rec.on_verdict(t, res.verdict, [h.to_json() for h in res.hypotheses[:8]], res.reason)
+        if rec.wants_move_plan:
+            if self._planner is None:
+                self._planner = ViewpointPlanner(self.robot, self.plane_map, self._relocalizer.index)
+            cfg = self.robot.recovery
+            rec.move_planned(t, *plan_recovery_move(self._planner, res.hypotheses, cfg.move_max_distance,
+                                                    cfg.move_clearance))
 
     def _kidnap(self, _t: float, payload: object) -> bool:
         self.world.board.pose = tuple(float(v) for v in payload)  # type: ignore[assignment]
