@@ -230,11 +230,14 @@ class RecoverySupervisor:
 
     def move_stopped(self, t: float, why: str) -> None:
         """The move could not go on (the protective stop, a fault): the last verdict stands."""
-        if self.state != MOVING:
-            return
+        if self.state == MOVING:
+            self._motion_stopped(t, f"the move was stopped: {why}")
+
+    def _motion_stopped(self, t: float, note: str) -> None:
+        """A turn or move stopped: the verdict before it stands, and this trigger moves no more."""
         state, reason = self._after_turn
-        self.turn_note = f"the move was stopped: {why}"
-        self.state, self.reason = state, f"{reason}; {self.turn_note}"
+        self.turn_note = note
+        self.state, self.reason = state, f"{reason}; {note}"
         self._sequence_open = False
         self._may_turn = False
         self._next_try = t + self.config.retry_period
@@ -254,14 +257,8 @@ class RecoverySupervisor:
 
     def turn_stopped(self, t: float, why: str) -> None:
         """The turn could not go on (the protective stop, a fault): the last verdict stands."""
-        if self.state != TURNING:
-            return
-        state, reason = self._after_turn
-        self.turn_note = f"the in-place turn was stopped: {why}"
-        self.state, self.reason = state, f"{reason}; {self.turn_note}"
-        self._sequence_open = False
-        self._may_turn = False
-        self._next_try = t + self.config.retry_period
+        if self.state == TURNING:
+            self._motion_stopped(t, f"the in-place turn was stopped: {why}")
 
     @property
     def turning(self) -> bool:
