@@ -75,3 +75,29 @@ def _kernel_backend_as_found(monkeypatch):
     fit_kernels.backend()
     for name in ("_backend", "_note", "_requested"):
         monkeypatch.setattr(fit_kernels, name, getattr(fit_kernels, name))
+
+
+@pytest.fixture(scope="session")
+def twin_rooms():
+    """Two 3 x 4 m rooms 6 m apart, alike but for where the door of their north wall is (east end in
+    one, west end in the other), and a pose in the first facing its south-west corner: from there
+    both cameras see only what the two rooms share (two exact twins); facing north they differ.
+    Returns (map, pose)."""
+    import math
+
+    import numpy as np
+
+    from robot.base.geometry import newell_normal
+    from robot.maps.plane_map import PlaneMap, make_plane
+
+    def wall(pid, p0, p1, h=2.5):
+        v = np.array([[p0[0], p0[1], 0.0], [p1[0], p1[1], 0.0], [p1[0], p1[1], h], [p0[0], p0[1], h]])
+        inward = np.array([p0[1] - p1[1], p1[0] - p0[0], 0.0])  # left of the walk round the room
+        return make_plane(pid, [(v if newell_normal(v) @ inward > 0 else v[::-1]).tolist()])
+
+    def room(tag, x0, door):
+        return [wall(f"{tag}_s", (x0, 0), (x0 + 3, 0)), wall(f"{tag}_e", (x0 + 3, 0), (x0 + 3, 4)),
+                wall(f"{tag}_n1", (x0 + 3, 4), (x0 + door[1], 4)), wall(f"{tag}_n2", (x0 + door[0], 4), (x0, 4)),
+                wall(f"{tag}_w", (x0, 4), (x0, 0))]
+
+    return PlaneMap(room("a", 0.0, (2.0, 2.9)) + room("b", 6.0, (0.1, 1.0)), "twin rooms"), (1.5, 1.2, math.radians(-135.0))

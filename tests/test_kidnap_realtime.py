@@ -21,7 +21,7 @@ from firmware_protocol import SetWheelSpeeds
 from robot.app.controller import AppOptions, RobotApp
 from robot.config import load_robot_config
 from robot.control.path_file import load_path
-from robot.control.recovery import CONFIRMING, RELOCALIZING, TRACKING
+from robot.control.recovery import CONFIRMING, MOVING, RELOCALIZING, TRACKING
 from robot.maps.plane_map import load_plane_map
 from robot.recording.recorder import NullRecorder
 from robot.recording.schema import TOPIC_STATUS
@@ -255,3 +255,67 @@ def test_realtime_kidnapped_robot_holds_relocalizes_and_finishes_its_path():
         assert e < TOUR.waypoints[i].tolerance, f"target {i + 1}: true error {e * 1e3:.1f} mm"
     last = TOUR.waypoints[-1]
     assert math.hypot(truth_end[0] - last.x, truth_end[1] - last.y) < last.tolerance
+
+
+@pytest.mark.slow
+def test_realtime_ambiguous_start_moves_to_tell_the_places_apart_then_tracks(twin_rooms):
+    """Started without a pose in one of two rooms that look alike from where it stands (conftest's
+    twin_rooms), with recovery.move_to_tell_apart: the app plans a move off its loop, drives it
+    (turn, then straight ahead), relocalizes with both views and tracks where the robot truly is."""
+    robot = replace(ROBOT, recovery=replace(ROBOT.recovery, move_to_tell_apart=True))
+    plane_map, start = twin_rooms
+    watch = Watch()
+    rig_ref: Dict[str, Any] = {}
+
+    def on_tick(app: RobotApp, t: float) -> None:
+        out = app.last_output
+        rec = app.core.recovery
+        c = out.command
+        tick = Tick(t, rec.state, rec.reason, (c.vx, c.vy, c.wz), out.wheels, rig_ref["rig"].emulator.pose,
+                    app.core.pose(t)[0] if app.core.initialized else None, 0.0, app.chassis.link_state.value)
+        with watch.cond:
+            watch.ticks.append(tick)
+            watch.cond.notify_all()
+
+    rc: List[int] = []
+    errors: List[BaseException] = []
+
+    def run_app(app) -> None:
+        try:
+            rc.append(asyncio.run(app.run()))
+        except BaseException as e:  # shown by the failing wait, not lost in the thread
+            errors.append(e)
+
+    watch.stopped_why = lambda: f"exit status {rc}, reason {rig_ref['rig'].app.exit_reason!r}, errors {errors!r}"
+    with sim_rig(robot, plane_map, start, RealtimeSimSettings(fps=10, decimation=4), AppOptions(install_signal_handlers=False),
+                 recorder=_SetPoseTap(watch), on_tick=on_tick) as rig:
+        rig_ref["rig"] = rig
+        watch.log_states_of(rig.app.core.recovery)
+        thread = threading.Thread(target=run_app, args=(rig.app,), daemon=True)
+        thread.start()
+        try:
+            watch.wait(lambda: any(st == MOVING for _, st, _ in watch.states), "a planned move", thread.is_alive)
+            goal = rig.app.core.recovery.move_goal
+            # A control tick in the state 'tracking' (after a confirmation): the pose it fused then.
+            watch.wait(lambda: any(st == CONFIRMING for _, st, _ in watch.states) and bool(watch.ticks)
+                       and watch.ticks[-1].state == TRACKING and watch.ticks[-1].fused is not None,
+                       "tracking after the move", thread.is_alive)
+            with watch.cond:
+                k_back = len(watch.ticks) - 1
+        finally:
+            while thread.is_alive():
+                rig.app.request_stop("test end")
+                thread.join(1.0)
+    states = [st for _, st, _ in watch.states]
+    assert states.index(MOVING) < states.index(CONFIRMING), watch.states
+    # It moved about as far as planned, and the pose it set and then tracked is where it truly stands.
+    truth = watch.ticks[k_back].truth
+    assert abs(math.hypot(truth[0] - start[0], truth[1] - start[1]) - math.hypot(goal[0], goal[1])) < 0.05
+    x, y, phi = watch.relocalized[-1]
+    assert math.hypot(x - truth[0], y - truth[1]) < 0.02 and _angle(phi, truth[2]) < math.radians(1.0)
+    fx, fy, fphi = watch.ticks[k_back].fused
+    assert math.hypot(fx - truth[0], fy - truth[1]) < 0.02 and _angle(fphi, truth[2]) < math.radians(1.0)
+    # The move: a turn on the spot, then straight ahead, never faster than the move's speed.
+    driving = [s.twist for s in watch.ticks if s.state == MOVING and s.wheels is not None]
+    assert driving and all(math.hypot(vx, vy) <= robot.recovery.move_speed + 1e-9 for vx, vy, _ in driving)
+    assert all(vx >= 0.99 * math.hypot(vx, vy) for vx, vy, wz in driving if wz == 0.0)  # ahead, as the robot faces

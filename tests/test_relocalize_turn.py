@@ -248,6 +248,19 @@ def test_a_planned_move_resolves_an_ambiguous_view_and_the_robot_resumes():
     assert max(r.error for r in res.targets) < 0.01
 
 
+def test_exact_twins_are_told_apart_by_one_move(twin_rooms):
+    plane_map, pose = twin_rooms
+    run, res = _drive(MOVING_ROBOT, plane_map, pose, 60.0)
+    _, _, _, first, hyps = run.at_relocalization[0]
+    assert first == "ambiguous" and len(hyps) == 2  # the two rooms, to the bit alike from here
+    assert sorted(round(h["x"], 1) for h in hyps) == [pose[0], pose[0] + 6.0]
+    assert [v for _, v in run.relocalizations] == ["ambiguous", "unique"]
+    _, truth, views, _, hyps = run.at_relocalization[-1]
+    assert views == 2 and _moved(hyps[0], truth) < 0.01
+    assert abs(math.remainder(hyps[0]["phi"] - truth[2], 2 * math.pi)) < math.radians(0.5)
+    assert res.finished, res.reason
+
+
 def test_without_move_to_tell_apart_the_robot_stays_still_and_ambiguous():
     assert RecoveryConfig().move_to_tell_apart is False
     run, res = _drive(ROBOT, HOUSE, HOUSE_POSE, 5.0)
