@@ -277,21 +277,32 @@ def frames_at(scene, pose, rng, noise):
     return [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=noise) for c in ROBOT.cameras]
 
 
-def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, frames, res, rng, noise) -> Tuple[str, float]:
-    """The verdict after the planned move from one ambiguous view ('no_move' if none is planned),
-    and the move's length (m)."""
+def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views, res, rng, noise) -> Tuple[str, float]:
+    """The verdict after the planned move from an ambiguous verdict ``res`` on ``views`` (each
+    (frames, odometry pose in the first view's frame), the last one taken at the true ``pose``),
+    relocalized with all of them and the moved one ('no_move' if none is planned), and the move's
+    length (m)."""
     move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined])
     if move is None:
         return "no_move", 0.0
     moved = compose_se2(pose, (move.dx, move.dy, move.dphi))
     odo = (move.dx * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)), move.dy * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)),
            move.dphi + math.radians(rng.normal(0.0, MOVE_ODO_PHI_DEG)))
-    first, more = views_from_latest([(frames, (0.0, 0.0, 0.0)), (frames_at(scene, moved, rng, noise), odo)])
+    first, more = views_from_latest(list(views) + [(frames_at(scene, moved, rng, noise), compose_se2(views[-1][1], odo))])
     return classify(rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30))), moved), move.distance
 
 
+def _note_move(table: Dict[str, int], lengths: List[float], k: str, length: float, sym: bool) -> None:
+    table[k] = table.get(k, 0) + 1
+    if sym:
+        table["sym_" + k] = table.get("sym_" + k, 0) + 1
+    if length > 0.0:
+        lengths.append(length)
+
+
 def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[str, int], Dict[str, int], Dict[str, int],
-                                                          List[float], List[int], str, Dict[str, int], List[float]]:
+                                                          List[float], List[int], str, Dict[str, int], List[float],
+                                                          Dict[str, int], List[float]]:
     """One stationary view per pose and, where it is not unique, the in-place turn of the recovery
     supervisor (recovery.turn_in_place): views at heading + k * turn_step_deg from the same position,
     each with its odometry heading (0.2 deg of error per step, accumulating), until unique or
@@ -301,6 +312,8 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
     planner = ViewpointPlanner(ROBOT, plane_map, rel.index)
     moved: Dict[str, int] = {}
     move_lengths: List[float] = []
+    turn_moved: Dict[str, int] = {}  # the planned move after the turn, where it ends ambiguous
+    turn_move_lengths: List[float] = []
     rng = np.random.default_rng(seed)
     poses = free_space_poses(plane_map, n, rng, z=0.15)
     step = math.radians(TURN_STEP_DEG)
@@ -346,12 +359,8 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
         if two:
             _note(counts_two, k_single, sym, ptwin)
         if i_pose % TURN_EVERY == MOVE_PHASE and k_single.startswith("ambiguous"):
-            k_move, length = planned_move(rel, planner, scene, pose, frames, res, rng, noise)
-            moved[k_move] = moved.get(k_move, 0) + 1
-            if sym:
-                moved["sym_" + k_move] = moved.get("sym_" + k_move, 0) + 1
-            if length > 0.0:
-                move_lengths.append(length)
+            k_move, length = planned_move(rel, planner, scene, pose, [(frames, (0.0, 0.0, 0.0))], res, rng, noise)
+            _note_move(moved, move_lengths, k_move, length, sym)
         if not turning:
             continue
         views_used.append(len(views))
@@ -363,7 +372,12 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
         _note(turn, k_turn, sym_turn)
         if two:
             _note(turn_two, k_turn, sym_turn)
-    return counts, counts_two, turn, turn_two, times, views_used, clutter_desc, moved, move_lengths
+        if k_turn.startswith("ambiguous"):  # the recovery's next step when both are on: a planned move
+            k_move, length = planned_move(rel, planner, scene, (pose[0], pose[1], pose[2] + (k - 1) * step), views, res,
+                                          rng, noise)
+            _note_move(turn_moved, turn_move_lengths, k_move, length, sym_turn)
+    return (counts, counts_two, turn, turn_two, times, views_used, clutter_desc, moved, move_lengths, turn_moved,
+            turn_move_lengths)
 
 
 def _row(name, counts, total_label="", panels: bool = True):
@@ -383,13 +397,8 @@ def _row(name, counts, total_label="", panels: bool = True):
     return row + f" {ptwin} | {u_ok} of {rest2} ({100.0 * u_ok / max(rest2, 1):.0f} %) |"
 
 
-def move_table(results) -> List[str]:
-    lines = [f"**One planned move where one view is ambiguous** (every {TURN_EVERY}rd pose, not those turned "
-             "above): the move `robot/localization/viewpoint.py` plans from the view's hypotheses (a turn on the "
-             "spot to face the way, then up to 2 m straight ahead, clear of every wall in every hypothesis), driven with "
-             f"odometry off by {100 * MOVE_ODO_SCALE:g} % per axis and {MOVE_ODO_PHI_DEG:g} deg (1 sigma), then "
-             "relocalized with both views. Map-symmetric poses are in: a move can show what the first view could not.",
-             "",
+def move_table(results, at: int, title: str) -> List[str]:
+    lines = [title, "",
              "| map | ambiguous poses | no move planned | moved | correct unique | unique, off within its hidden-wall "
              "bound | WRONG unique | ambiguous, truth in list | ambiguous, truth missing | none | of the moved "
              "map-symmetric ones: correct unique |",
@@ -400,8 +409,8 @@ def move_table(results) -> List[str]:
         if name == "**all**":
             m = tot
         else:
-            m = results[name][5]
-            lengths += results[name][6]
+            m = results[name][at]
+            lengths += results[name][at + 1]
             for k, v in m.items():
                 tot[k] = tot.get(k, 0) + v
         plain = {k: v for k, v in m.items() if not k.startswith("sym_")}
@@ -533,8 +542,9 @@ def run(quick: bool = False) -> str:
     results = {}
     desc = ""
     for i, name in enumerate(MAPS):
-        counts, two, turn, turn_two, times, views, desc, moved, lengths = run_map(name, n, 100 + i, noise)
-        results[name] = (counts, two, turn, turn_two, views, moved, lengths)
+        counts, two, turn, turn_two, times, views, desc, moved, lengths, turn_moved, turn_lengths = run_map(
+            name, n, 100 + i, noise)
+        results[name] = (counts, two, turn, turn_two, views, moved, lengths, turn_moved, turn_lengths)
         all_times[(name, False)] = times
     for turned in (False, True):
         title = (f"In-place turn where one view is not unique, every {TURN_EVERY}rd pose (steps of {TURN_STEP_DEG:g} deg up to "
@@ -570,7 +580,17 @@ def run(quick: bool = False) -> str:
                       f"1 deg; mostly degenerate fixes, whose loose direction comes from the pair solution): {len(listed)}"
                       + (f", position errors {', '.join(f'{1e3 * v:.0f}' for v in sorted(listed))} mm." if listed else "."),
                       ""]
-    lines += move_table(results)
+    lines += move_table(results, 5, (
+        f"**One planned move where one view is ambiguous** (every {TURN_EVERY}rd pose, not those turned above): the "
+        "move `robot/localization/viewpoint.py` plans from the view's hypotheses (a turn on the spot to face the way, "
+        "then up to 2 m straight ahead, clear of every wall in every hypothesis), driven with odometry off by "
+        f"{100 * MOVE_ODO_SCALE:g} % per axis and {MOVE_ODO_PHI_DEG:g} deg (1 sigma), then relocalized with both "
+        "views. Map-symmetric poses are in: a move can show what the first view could not."))
+    lines += move_table(results, 7, (
+        "**The in-place turn, then one planned move where the turn ends ambiguous** (the poses of the turn's table; "
+        "the recovery with `turn_in_place` and `move_to_tell_apart` both on): planned from the turn's last verdict, "
+        "driven as above, relocalized with every view of the turn and the moved one. 'Map-symmetric' is the turn "
+        "table's."))
     lines += panel_table(quick, noise)
     lines += ["| map | median s | p95 s (one view) |", "|---|---|---|"]
     for name in MAPS:
