@@ -9,11 +9,12 @@ asserted about how many seconds or ticks anything took, since that depends on th
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Dict, List, Mapping, Optional, Tuple
+from typing import Any, Callable, Dict, Iterator, List, Mapping, Optional, Tuple
 
 import pytest
 
@@ -113,6 +114,31 @@ class _SetPoseTap(NullRecorder):
         return False
 
 
+@contextlib.contextmanager
+def _app_running(rig, watch: Watch) -> Iterator[Tuple[threading.Thread, List[int]]]:
+    """The rig's app on a thread of its own: (the thread, its exit status once it ended); stopped
+    before the rig is torn down if the test ends first (a failed wait)."""
+    rc: List[int] = []
+    errors: List[BaseException] = []
+
+    def run_app() -> None:
+        try:
+            rc.append(asyncio.run(rig.app.run()))
+        except BaseException as e:  # shown by the failing wait, not lost in the thread
+            errors.append(e)
+
+    watch.stopped_why = lambda: f"exit status {rc}, reason {rig.app.exit_reason!r}, errors {errors!r}"
+    watch.log_states_of(rig.app.core.recovery)
+    thread = threading.Thread(target=run_app, daemon=True)
+    thread.start()
+    try:
+        yield thread, rc
+    finally:
+        while thread.is_alive():
+            rig.app.request_stop("test end")
+            thread.join(1.0)
+
+
 def _angle(a: float, b: float) -> float:
     return abs(math.remainder(a - b, 2.0 * math.pi))
 
@@ -159,23 +185,10 @@ def test_realtime_kidnapped_robot_holds_relocalizes_and_finishes_its_path():
 
     start = (TOUR.start.x, TOUR.start.y, TOUR.start.heading)
     opts = AppOptions(install_signal_handlers=False)
-    rc: List[int] = []
-    errors: List[BaseException] = []
-
-    def run_app(app) -> None:
-        try:
-            rc.append(asyncio.run(app.run()))
-        except BaseException as e:  # shown by the failing wait, not lost in the thread
-            errors.append(e)
-
-    watch.stopped_why = lambda: f"exit status {rc}, reason {rig_ref['rig'].app.exit_reason!r}, errors {errors!r}"
     with sim_rig(ROBOT, HOUSE, start, RealtimeSimSettings(fps=10, decimation=4), opts, plan=TOUR,
                  recorder=_SetPoseTap(watch), on_tick=on_tick) as rig:
         rig_ref["rig"] = rig
-        watch.log_states_of(rig.app.core.recovery)
-        thread = threading.Thread(target=run_app, args=(rig.app,), daemon=True)
-        thread.start()
-        try:
+        with _app_running(rig, watch) as (thread, rc):
             def moved() -> bool:
                 x, y, _ = watch.ticks[-1].truth if watch.ticks else start
                 return math.hypot(x - start[0], y - start[1]) > MOVED_BEFORE_KIDNAP
@@ -192,10 +205,6 @@ def test_realtime_kidnapped_robot_holds_relocalizes_and_finishes_its_path():
                 st == CONFIRMING for k, st, _ in watch.states if k >= k_kidnap), "tracking again", thread.is_alive)
             thread.join(HANG)  # the app ends by itself once the path is complete
             assert not thread.is_alive(), "hang guard: the path did not end"
-        finally:
-            while thread.is_alive():  # a failed wait: stop the app before the rig is torn down
-                rig.app.request_stop("test end")
-                thread.join(1.0)
         received = rig.emulator.received()
         truth_end = rig.emulator.pose
     assert rc == [0] and rig.app.exit_reason == "path complete", (rc, rig.app.exit_reason)
@@ -277,23 +286,10 @@ def test_realtime_ambiguous_start_moves_to_tell_the_places_apart_then_tracks(twi
             watch.ticks.append(tick)
             watch.cond.notify_all()
 
-    rc: List[int] = []
-    errors: List[BaseException] = []
-
-    def run_app(app) -> None:
-        try:
-            rc.append(asyncio.run(app.run()))
-        except BaseException as e:  # shown by the failing wait, not lost in the thread
-            errors.append(e)
-
-    watch.stopped_why = lambda: f"exit status {rc}, reason {rig_ref['rig'].app.exit_reason!r}, errors {errors!r}"
     with sim_rig(robot, plane_map, start, RealtimeSimSettings(fps=10, decimation=4), AppOptions(install_signal_handlers=False),
                  recorder=_SetPoseTap(watch), on_tick=on_tick) as rig:
         rig_ref["rig"] = rig
-        watch.log_states_of(rig.app.core.recovery)
-        thread = threading.Thread(target=run_app, args=(rig.app,), daemon=True)
-        thread.start()
-        try:
+        with _app_running(rig, watch) as (thread, _):
             watch.wait(lambda: any(st == MOVING for _, st, _ in watch.states), "a planned move", thread.is_alive)
             goal = rig.app.core.recovery.move_goal
             # A control tick in the state 'tracking' (after a confirmation): the pose it fused then.
@@ -302,10 +298,6 @@ def test_realtime_ambiguous_start_moves_to_tell_the_places_apart_then_tracks(twi
                        "tracking after the move", thread.is_alive)
             with watch.cond:
                 k_back = len(watch.ticks) - 1
-        finally:
-            while thread.is_alive():
-                rig.app.request_stop("test end")
-                thread.join(1.0)
     states = [st for _, st, _ in watch.states]
     assert states.index(MOVING) < states.index(CONFIRMING), watch.states
     # It moved about as far as planned, and the pose it set and then tracked is where it truly stands.

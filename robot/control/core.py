@@ -564,6 +564,17 @@ class ControllerCore:
             return "the robot is teleoperated: it does not move by itself"
         return ""
 
+    def _stop_if_blocked(self, t: float, stop, *limiters: AxisLimiter) -> None:
+        """End the recovery's turn or move (``stop``) when it may not go on (``_turn_blocker``);
+        where the board has stopped the wheels itself there is nothing to brake: the limiters
+        start from rest."""
+        why = self._turn_blocker(t)
+        if why:
+            stop(t, why)
+            if self.health.holding or not self.health.chassis_ok:
+                for lim in limiters:
+                    lim.reset()
+
     def _recovery_motion(self, t: float) -> Optional[ControlOutput]:
         """The relocalization's in-place turn or move (at most one of them runs)."""
         move = self._recovery_move(t)
@@ -590,12 +601,7 @@ class ControllerCore:
         if rec.moving and self._move_start is None:
             self._move_start, self._move_yaw0, self._move_facing = self._turn_rel, self._turn_yaw, False
         if rec.moving:
-            why = self._turn_blocker(t)
-            if why:
-                rec.move_stopped(t, why)
-                if self.health.holding or not self.health.chassis_ok:
-                    lim.reset()  # the board has stopped the wheels: nothing to brake
-                    yaw_lim.reset()
+            self._stop_if_blocked(t, rec.move_stopped, lim, yaw_lim)
         wz_target, v_target, dist = 0.0, 0.0, math.inf
         if rec.moving and self._move_start is not None:
             gx, gy, gphi = rec.move_goal
@@ -652,11 +658,7 @@ class ControllerCore:
         dt = 1.0 / c.rate if self._turn_t is None else min(max(t - self._turn_t, 0.0), c.max_dt)
         self._turn_t = t
         if rec.turning:
-            why = self._turn_blocker(t)
-            if why:
-                rec.turn_stopped(t, why)
-                if self.health.holding or not self.health.chassis_ok:
-                    lim.reset()  # the board has stopped the wheels: nothing to brake
+            self._stop_if_blocked(t, rec.turn_stopped, lim)
         remaining = rec.turn_goal - self._turn_yaw
         if rec.turning:
             target = approach_speed(remaining, lim.max_speed, 0.5 * c.max_yaw_accel, TURN_KP)
