@@ -72,6 +72,7 @@ TURN_STEP_DEG = ROBOT.recovery.turn_step_deg
 MOVE_PHASE = 1
 MOVE_ODO_SCALE = 0.01
 MOVE_ODO_PHI_DEG = 0.3
+TWO = "two_"  # the move tables' keys for the outcome with up to two moves (recovery.max_moves: 2)
 
 
 def _noise():
@@ -277,32 +278,47 @@ def frames_at(scene, pose, rng, noise):
     return [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=noise) for c in ROBOT.cameras]
 
 
-def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views, res, rng, noise) -> Tuple[str, float]:
-    """The verdict after the planned move from an ambiguous verdict ``res`` on ``views`` (each
+def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views, res, rng, noise,
+                 max_moves: int = 2) -> Tuple[str, float, str, float]:
+    """The verdicts after the planned moves from an ambiguous verdict ``res`` on ``views`` (each
     (frames, odometry pose in the first view's frame), the last one taken at the true ``pose``),
-    relocalized with all of them and the moved one ('no_move' if none is planned), and the move's
-    length (m)."""
-    move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined])
-    if move is None:
-        return "no_move", 0.0
-    moved = compose_se2(pose, (move.dx, move.dy, move.dphi))
-    odo = (move.dx * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)), move.dy * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)),
-           move.dphi + math.radians(rng.normal(0.0, MOVE_ODO_PHI_DEG)))
-    first, more = views_from_latest(list(views) + [(frames_at(scene, moved, rng, noise), compose_se2(views[-1][1], odo))])
-    return classify(rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30))), moved), move.distance
+    each relocalized with all views before it and the moved one, as the recovery does: (verdict
+    and length with one move allowed, the same with up to ``max_moves``; 'no_move' where none is
+    planned). With more moves allowed the first plan may be the first of two moves (none alone
+    telling the places apart), which one move allowed does not make."""
+    one, one_len = "no_move", 0.0
+    verdict, total = "no_move", 0.0
+    views = list(views)
+    for left in range(max_moves, 0, -1):
+        move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, left))
+        if move is None:
+            break
+        moved = compose_se2(pose, (move.dx, move.dy, move.dphi))
+        odo = (move.dx * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)), move.dy * (1.0 + rng.normal(0.0, MOVE_ODO_SCALE)),
+               move.dphi + math.radians(rng.normal(0.0, MOVE_ODO_PHI_DEG)))
+        views.append((frames_at(scene, moved, rng, noise), compose_se2(views[-1][1], odo)))
+        first, more = views_from_latest(views)
+        res = rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30)))
+        verdict, total, pose = classify(res, moved), total + move.distance, moved
+        if left == max_moves and move.then is None:
+            one, one_len = verdict, move.distance  # what the recovery with one move allowed ends with
+        if res.verdict != AMBIGUOUS:
+            break
+    return one, one_len, verdict, total
 
 
-def _note_move(table: Dict[str, int], lengths: List[float], k: str, length: float, sym: bool) -> None:
-    table[k] = table.get(k, 0) + 1
+def _note_move(table: Dict[str, int], lengths: List[float], k: str, length: float, sym: bool,
+               prefix: str = "") -> None:
+    table[prefix + k] = table.get(prefix + k, 0) + 1
     if sym:
-        table["sym_" + k] = table.get("sym_" + k, 0) + 1
+        table[prefix + "sym_" + k] = table.get(prefix + "sym_" + k, 0) + 1
     if length > 0.0:
         lengths.append(length)
 
 
 def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[str, int], Dict[str, int], Dict[str, int],
                                                           List[float], List[int], str, Dict[str, int], List[float],
-                                                          Dict[str, int], List[float]]:
+                                                          Dict[str, int], List[float], List[float], List[float]]:
     """One stationary view per pose and, where it is not unique, the in-place turn of the recovery
     supervisor (recovery.turn_in_place): views at heading + k * turn_step_deg from the same position,
     each with its odometry heading (0.2 deg of error per step, accumulating), until unique or
@@ -312,6 +328,8 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
     planner = ViewpointPlanner(ROBOT, plane_map, rel.index)
     moved: Dict[str, int] = {}
     move_lengths: List[float] = []
+    move_lengths_two: List[float] = []  # (the whole path's, with up to two moves)
+    turn_move_lengths_two: List[float] = []
     turn_moved: Dict[str, int] = {}  # the planned move after the turn, where it ends ambiguous
     turn_move_lengths: List[float] = []
     rng = np.random.default_rng(seed)
@@ -359,8 +377,10 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
         if two:
             _note(counts_two, k_single, sym, ptwin)
         if i_pose % TURN_EVERY == MOVE_PHASE and k_single.startswith("ambiguous"):
-            k_move, length = planned_move(rel, planner, scene, pose, [(frames, (0.0, 0.0, 0.0))], res, rng, noise)
+            k_move, length, k_two, length_two = planned_move(rel, planner, scene, pose, [(frames, (0.0, 0.0, 0.0))],
+                                                             res, rng, noise)
             _note_move(moved, move_lengths, k_move, length, sym)
+            _note_move(moved, move_lengths_two, k_two, length_two, sym, TWO)
         if not turning:
             continue
         views_used.append(len(views))
@@ -373,11 +393,12 @@ def run_map(name: str, n: int, seed: int, noise) -> Tuple[Dict[str, int], Dict[s
         if two:
             _note(turn_two, k_turn, sym_turn)
         if k_turn.startswith("ambiguous"):  # the recovery's next step when both are on: a planned move
-            k_move, length = planned_move(rel, planner, scene, (pose[0], pose[1], pose[2] + (k - 1) * step), views, res,
-                                          rng, noise)
+            k_move, length, k_two, length_two = planned_move(
+                rel, planner, scene, (pose[0], pose[1], pose[2] + (k - 1) * step), views, res, rng, noise)
             _note_move(turn_moved, turn_move_lengths, k_move, length, sym_turn)
+            _note_move(turn_moved, turn_move_lengths_two, k_two, length_two, sym_turn, TWO)
     return (counts, counts_two, turn, turn_two, times, views_used, clutter_desc, moved, move_lengths, turn_moved,
-            turn_move_lengths)
+            turn_move_lengths, move_lengths_two, turn_move_lengths_two)
 
 
 def _row(name, counts, total_label="", panels: bool = True):
@@ -397,32 +418,45 @@ def _row(name, counts, total_label="", panels: bool = True):
     return row + f" {ptwin} | {u_ok} of {rest2} ({100.0 * u_ok / max(rest2, 1):.0f} %) |"
 
 
-def move_table(results, at: int, title: str) -> List[str]:
+def move_table(results, at: int, at_two: int, title: str) -> List[str]:
+    """The outcomes with one move allowed (``results[name][at]``, lengths at ``at + 1``) and, in the
+    last columns, with up to two (the same table's ``TWO`` keys, path lengths at ``at_two``)."""
     lines = [title, "",
              "| map | ambiguous poses | no move planned | moved | correct unique | unique, off within its hidden-wall "
              "bound | WRONG unique | ambiguous, truth in list | ambiguous, truth missing | none | of the moved "
-             "map-symmetric ones: correct unique |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "map-symmetric ones: correct unique | up to two moves: moved | correct unique | WRONG unique | "
+             "ambiguous, truth in list | other (off within the bound, truth missing, none) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     tot: Dict[str, int] = {}
     lengths: List[float] = []
+    lengths_two: List[float] = []
     for name in MAPS + ["**all**"]:
         if name == "**all**":
             m = tot
         else:
             m = results[name][at]
             lengths += results[name][at + 1]
+            lengths_two += results[name][at_two]
             for k, v in m.items():
                 tot[k] = tot.get(k, 0) + v
-        plain = {k: v for k, v in m.items() if not k.startswith("sym_")}
+        plain = {k: v for k, v in m.items() if not k.startswith("sym_") and not k.startswith(TWO)}
+        two = {k[len(TWO):]: v for k, v in m.items() if k.startswith(TWO) and not k.startswith(TWO + "sym_")}
         n_all = sum(plain.values())
         n_moved = n_all - plain.get("no_move", 0)
         sym_moved = sum(v for k, v in m.items() if k.startswith("sym_") and k != "sym_no_move")
+        n_two = sum(two.values()) - two.get("no_move", 0)
+        other = n_two - two.get("unique_ok", 0) - two.get("unique_wrong", 0) - two.get("ambiguous_with_truth", 0)
         lines.append(f"| {name} | {n_all} | {plain.get('no_move', 0)} | {n_moved} | {plain.get('unique_ok', 0)} | "
                      f"{plain.get('unique_bounded', 0)} | {plain.get('unique_wrong', 0)} | "
                      f"{plain.get('ambiguous_with_truth', 0)} | {plain.get('ambiguous_without_truth', 0)} | "
-                     f"{plain.get('none', 0)} | {m.get('sym_unique_ok', 0)} of {sym_moved} |")
+                     f"{plain.get('none', 0)} | {m.get('sym_unique_ok', 0)} of {sym_moved} | {n_two} | "
+                     f"{two.get('unique_ok', 0)} | {two.get('unique_wrong', 0)} | {two.get('ambiguous_with_truth', 0)} | "
+                     f"{other} |")
     if lengths:
-        lines += ["", f"Move length: median {np.median(lengths):.2f} m, max {max(lengths):.2f} m."]
+        lines += ["", f"Move length (one move): median {np.median(lengths):.2f} m, max {max(lengths):.2f} m."]
+    if lengths_two:
+        lines += [f"Path length with up to two moves: median {np.median(lengths_two):.2f} m, max "
+                  f"{max(lengths_two):.2f} m."]
     return lines + [""]
 
 
@@ -542,9 +576,10 @@ def run(quick: bool = False) -> str:
     results = {}
     desc = ""
     for i, name in enumerate(MAPS):
-        counts, two, turn, turn_two, times, views, desc, moved, lengths, turn_moved, turn_lengths = run_map(
-            name, n, 100 + i, noise)
-        results[name] = (counts, two, turn, turn_two, views, moved, lengths, turn_moved, turn_lengths)
+        (counts, two, turn, turn_two, times, views, desc, moved, lengths, turn_moved, turn_lengths, lengths_two,
+         turn_lengths_two) = run_map(name, n, 100 + i, noise)
+        results[name] = (counts, two, turn, turn_two, views, moved, lengths, turn_moved, turn_lengths, lengths_two,
+                         turn_lengths_two)
         all_times[(name, False)] = times
     for turned in (False, True):
         title = (f"In-place turn where one view is not unique, every {TURN_EVERY}rd pose (steps of {TURN_STEP_DEG:g} deg up to "
@@ -580,13 +615,16 @@ def run(quick: bool = False) -> str:
                       f"1 deg; mostly degenerate fixes, whose loose direction comes from the pair solution): {len(listed)}"
                       + (f", position errors {', '.join(f'{1e3 * v:.0f}' for v in sorted(listed))} mm." if listed else "."),
                       ""]
-    lines += move_table(results, 5, (
+    lines += move_table(results, 5, 9, (
         f"**One planned move where one view is ambiguous** (every {TURN_EVERY}rd pose, not those turned above): the "
         "move `robot/localization/viewpoint.py` plans from the view's hypotheses (a turn on the spot to face the way, "
         "then up to 2 m straight ahead, clear of every wall in every hypothesis), driven with odometry off by "
         f"{100 * MOVE_ODO_SCALE:g} % per axis and {MOVE_ODO_PHI_DEG:g} deg (1 sigma), then relocalized with both "
-        "views. Map-symmetric poses are in: a move can show what the first view could not."))
-    lines += move_table(results, 7, (
+        "views. Map-symmetric poses are in: a move can show what the first view could not. The last columns: "
+        "the recovery with `max_moves: 2`, which, where no single move tells the places apart, plans a path of two "
+        "(the first clear in every hypothesis, the second clear from its end in every hypothesis), drives the first, "
+        "relocalizes with every view, and plans again from that verdict."))
+    lines += move_table(results, 7, 10, (
         "**The in-place turn, then one planned move where the turn ends ambiguous** (the poses of the turn's table; "
         "the recovery with `turn_in_place` and `move_to_tell_apart` both on): planned from the turn's last verdict, "
         "driven as above, relocalized with every view of the turn and the moved one. 'Map-symmetric' is the turn "

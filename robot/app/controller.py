@@ -681,7 +681,8 @@ class RobotApp:
                     planner = await self._loop.run_in_executor(self._executor, ViewpointPlanner, self.robot,
                                                                self.plane_map, relocalizer.index)
                 move, why = await self._loop.run_in_executor(self._executor, plan_recovery_move, planner,
-                                                             res.hypotheses, cfg.move_max_distance, cfg.move_clearance)
+                                                             res.hypotheses, cfg.move_max_distance, cfg.move_clearance,
+                                                             rec.moves_left)
                 if move is not None:
                     log.warning("relocalization ambiguous: moving (%.2f, %.2f) m in the robot frame for a view that "
                                 "tells the places apart", move[0], move[1])

@@ -35,8 +35,9 @@ def cmd_relocalize(args) -> int:
     move = None
     if res.verdict == AMBIGUOUS:
         # Where the robot could look from next so that the views tell the places apart.
+        # (A path of two moves where none alone does, as the recovery plans with max_moves >= 2.)
         move = ViewpointPlanner(robot, plane_map, relocalizer.index).plan(
-            [(h.x, h.y, h.phi) for h in res.hypotheses if h.refined])
+            [(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, robot.recovery.max_moves))
     if args.json:
         print_json({**res.to_json(), "move": None if move is None else move.to_json()})
     else:
@@ -54,6 +55,10 @@ def cmd_relocalize(args) -> int:
             print(f"  a move that would tell {move.places} places apart ({move.alike} pairs alike after it, "
                   f"{move.alike_here} here): turn {math.degrees(move.dphi):+.0f} deg on the spot, then drive "
                   f"{move.distance:.2f} m straight ahead; then relocalize there")
+            if move.then is not None:
+                print(f"    (that alone does not: then turn {math.degrees(move.then[2]):+.0f} deg and drive "
+                      f"{math.hypot(move.then[0], move.then[1]):.2f} m, and relocalize again)")
         elif res.verdict == AMBIGUOUS:
-            print(f"  no move up to {MAX_DISTANCE:.1f} m would tell these places apart better")
+            most = "two moves" if robot.recovery.max_moves >= 2 else "a move"
+            print(f"  no {most} of up to {MAX_DISTANCE:.1f} m would tell these places apart better")
     return 1 if res.verdict == NONE else 0

@@ -246,6 +246,11 @@ class RecoverySupervisor:
     def moving(self) -> bool:
         return self.state == MOVING
 
+    @property
+    def moves_left(self) -> int:
+        """Moves this trigger may still make (the planner looks for a path of two where it may)."""
+        return max(0, self.config.max_moves - self._moves)
+
     def turn_done(self, t: float) -> None:
         """The core has turned to ``turn_goal`` and braked: relocalize with one more view."""
         if self.state != TURNING:

@@ -13,7 +13,12 @@ hypotheses apart where their predicted depths differ by more than ``DEPTH_APART`
 predicts a wall nearer than ``SURE_RANGE`` and the other none (farther, a D435i often returns
 nothing at all). A pair stays *alike* when fewer than ``min_share`` of the grid's pixels tell it
 apart. The move taken leaves the fewest alike pairs, fewer than where the robot stands; among
-equals the shortest (the least driving while not localized). Hypotheses at the same place
+equals the shortest (the least driving while not localized). Where no single move does (the
+way that shows a difference runs into a wall: out of a small office, round a corner), and the
+recovery may move twice, a path of two such moves is searched: the first clear in every
+hypothesis, the second clear from where the first ends in every hypothesis. Only the first is
+returned to drive (with the second as ``then``): the relocalization after it plans again from
+what it then sees, and a single move then finds the second leg, or a better one. Hypotheses at the same place
 (``SAME_PLACE_XY``, ``SAME_PLACE_PHI``) count once. A move must keep the robot's circumscribed
 circle plus ``clearance`` off every wall in *every* hypothesis (the robot is at one of them, not
 known which). Site clutter is left to the protective stop, which stays in force while the
@@ -57,6 +62,10 @@ DIRECTIONS = 16  # candidate directions of travel, evenly spaced in the robot fr
 MAX_DISTANCE = 2.0  # m: the longest move planned (measured: 0.5 to 2 m sufficed in a house)
 CLEARANCE = 0.15  # m kept between the robot's circumscribed circle and every wall, in every hypothesis
 MIN_SHARE = 0.05  # of the grid's pixels: fewer telling a pair apart leave it alike
+# The two-move search predicts views at every clear pair of moves (up to (DIRECTIONS x steps)^2
+# end poses per place): it looks at the best few places only, a second plan after the first move
+# weighs them all.
+TWO_MOVE_PLACES = 4
 # Heights (robot frame, m) at which a wall blocks the robot: its body between floor and top.
 BODY_BAND = (0.02, 0.6)
 
@@ -71,15 +80,22 @@ class Move:
     alike: int  # pairs of places the predicted views after the move do not tell apart
     alike_here: int  # the same where the robot stands
     places: int  # places among the hypotheses (those nearer than SAME_PLACE_* count once)
+    # The second move of a two-move path (in the robot frame after this one), which makes ``alike``:
+    # this move alone does not tell the places apart.
+    then: Optional[Tuple[float, float, float]] = None
 
     @property
     def distance(self) -> float:
         return math.hypot(self.dx, self.dy)
 
     def to_json(self) -> dict:
-        return {"dx": round(self.dx, 4), "dy": round(self.dy, 4), "dphi": round(self.dphi, 6),
-                "distance": round(self.distance, 4),
-                "alike_pairs": self.alike, "alike_pairs_here": self.alike_here, "places": self.places}
+        out = {"dx": round(self.dx, 4), "dy": round(self.dy, 4), "dphi": round(self.dphi, 6),
+               "distance": round(self.distance, 4),
+               "alike_pairs": self.alike, "alike_pairs_here": self.alike_here, "places": self.places}
+        if self.then is not None:
+            out["then"] = {"dx": round(self.then[0], 4), "dy": round(self.then[1], 4), "dphi": round(self.then[2], 6),
+                           "distance": round(math.hypot(self.then[0], self.then[1]), 4)}
+        return out
 
 
 def wall_segments(plane_map: PlaneMap, z_lo: float, z_hi: float, samples: int = 5) -> np.ndarray:
@@ -222,38 +238,77 @@ class ViewpointPlanner:
         return True
 
     def plan(self, poses: Sequence[Pose], max_distance: float = MAX_DISTANCE, clearance: float = CLEARANCE,
-             min_share: float = MIN_SHARE, steps: int = 4) -> Optional[Move]:
+             min_share: float = MIN_SHARE, steps: int = 4, moves: int = 1) -> Optional[Move]:
         """The move (up to ``max_distance``, in ``steps`` lengths and DIRECTIONS directions, the
-        robot turned to face the way) after which the fewest pairs of ``poses`` (the robot's present pose hypotheses, best first) look
-        alike; None if no move leaves fewer than where the robot stands, or there is one place."""
+        robot turned to face the way) after which the fewest pairs of ``poses`` (the robot's present
+        pose hypotheses, best first) look alike; None if no move leaves fewer than where the robot
+        stands, or there is one place. With ``moves`` >= 2 and no single move that does, the first
+        move of the best two-move path (its second in ``then``)."""
         places = self.places([(float(p[0]), float(p[1]), float(p[2])) for p in poses])
         if len(places) < 2 or not max_distance > 0.0:
             return None
         here = self.alike_pairs(places, min_share)
         if here == 0:
             return None
+        candidates = self._moves(max_distance, steps)
         best: Optional[Move] = None
+        for move in candidates:
+            if not self.clear(places, move[:2], clearance):
+                continue
+            alike = self.alike_pairs([compose_se2(p, move) for p in places], min_share)
+            if alike < here and (best is None or alike < best.alike):
+                best = Move(move[0], move[1], move[2], alike, here, len(places))
+        if best is not None or moves < 2:
+            return best
+        return self._two_moves(places[:TWO_MOVE_PLACES], candidates, clearance, min_share, len(places))
+
+    def _two_moves(self, places: List[Pose], candidates: List[Tuple[float, float, float]], clearance: float,
+                   min_share: float, n_places: int) -> Optional[Move]:
+        """The first move of the path of two (each one of ``candidates``, each clear from where it
+        starts in every hypothesis) after which the fewest pairs of ``places`` look alike, fewer
+        than where the robot stands; among equals the shortest path."""
+        here = self.alike_pairs(places, min_share)
+        if here == 0:
+            return None
+        best: Optional[Tuple[int, float, Move]] = None
+        for first in candidates:
+            if not self.clear(places, first[:2], clearance):
+                continue
+            there = [compose_se2(p, first) for p in places]
+            d1 = math.hypot(first[0], first[1])
+            for second in candidates:
+                length = d1 + math.hypot(second[0], second[1])
+                if best is not None and length >= best[1] and best[0] == 0:
+                    continue  # (nothing shorter can be found here than a path that tells all apart)
+                if not self.clear(there, second[:2], clearance):
+                    continue
+                alike = self.alike_pairs([compose_se2(p, second) for p in there], min_share)
+                if alike < here and (best is None or (alike, length) < best[:2]):
+                    best = (alike, length, Move(first[0], first[1], first[2], alike, here, n_places, then=second))
+        return None if best is None else best[2]
+
+    @staticmethod
+    def _moves(max_distance: float, steps: int) -> List[Tuple[float, float, float]]:
+        """The candidate moves (dx, dy, dphi), shortest first: DIRECTIONS directions, ``steps`` lengths."""
+        out = []
         for k in range(1, max(1, steps) + 1):
             dist = max_distance * k / max(1, steps)
             for j in range(DIRECTIONS):
                 a = 2.0 * math.pi * j / DIRECTIONS
-                move = (dist * math.cos(a), dist * math.sin(a), float(math.remainder(a, 2.0 * math.pi)))
-                if not self.clear(places, move[:2], clearance):
-                    continue
-                alike = self.alike_pairs([compose_se2(p, move) for p in places], min_share)
-                if alike < here and (best is None or alike < best.alike):
-                    best = Move(move[0], move[1], move[2], alike, here, len(places))
-        return best
+                out.append((dist * math.cos(a), dist * math.sin(a), float(math.remainder(a, 2.0 * math.pi))))
+        return out
 
 
 def plan_recovery_move(planner: ViewpointPlanner, hypotheses: Sequence, max_distance: float,
-                       clearance: float) -> Tuple[Optional[Tuple[float, float, float]], str]:
+                       clearance: float, moves_left: int = 1) -> Tuple[Optional[Tuple[float, float, float]], str]:
     """The recovery's move from a relocalization's hypotheses (refined ones, best first): its end
-    (dx, dy, dphi) in the robot frame, or None and why not."""
+    (dx, dy, dphi) in the robot frame, or None and why not. With two or more ``moves_left``, the
+    first of two moves where no single one tells the places apart."""
     poses = [(h.x, h.y, h.phi) for h in hypotheses if h.refined]
-    move = planner.plan(poses, max_distance, clearance)
+    move = planner.plan(poses, max_distance, clearance, moves=min(2, moves_left))
     if move is None:
-        return None, f"no move up to {max_distance:.1f} m would tell the places apart"
+        most = "two moves" if moves_left >= 2 else "a move"
+        return None, f"no {most} of up to {max_distance:.1f} m would tell the places apart"
     return (move.dx, move.dy, move.dphi), ""
 
 

@@ -329,7 +329,7 @@ class _PathRun:
                 self._planner = ViewpointPlanner(self.robot, self.plane_map, self._relocalizer.index)
             cfg = self.robot.recovery
             rec.move_planned(t, *plan_recovery_move(self._planner, res.hypotheses, cfg.move_max_distance,
-                                                    cfg.move_clearance))
+                                                    cfg.move_clearance, rec.moves_left))
 
     def _kidnap(self, _t: float, payload: object) -> bool:
         self.world.board.pose = tuple(float(v) for v in payload)  # type: ignore[assignment]
