@@ -261,6 +261,26 @@ def test_exact_twins_are_told_apart_by_one_move(twin_rooms):
     assert res.finished, res.reason
 
 
+def test_in_a_row_of_alike_offices_the_robot_moves_until_the_views_tell_them_apart():
+    # An office of the institute floor whose view fits offices 6 m along the corridor (and more):
+    # no single move tells them all apart from here, a path of two does (viewpoint's two-move
+    # search), and the recovery may move three times.
+    plane_map = load_plane_map("config/maps/institute_ground.yaml")
+    robot = replace(MOVING_ROBOT, recovery=replace(MOVING_ROBOT.recovery, max_moves=3))
+    pose = (6.568, 6.191, math.radians(-27.9))
+    run, res = _drive(robot, plane_map, pose, 90.0)
+    _, _, _, first, hyps = run.at_relocalization[0]
+    assert first == "ambiguous" and len(hyps) >= 2
+    states = [s for _, s in run.recovery_log]
+    assert states.count(MOVING) >= 2 and states.index(MOVING) < states.index(CONFIRMING)
+    t_unique, truth, views, verdict, hyps = next(r for r in run.at_relocalization if r[3] == "unique")
+    assert views >= 3  # the first view and one after each move
+    assert _moved(hyps[0], truth) < 0.01 and abs(math.remainder(hyps[0]["phi"] - truth[2], 2 * math.pi)) < math.radians(0.5)
+    assert all(v != "unique" for t, v in run.relocalizations if t < t_unique)
+    assert res.finished, res.reason
+    assert max(r.error for r in res.targets) < 0.01
+
+
 def test_without_move_to_tell_apart_the_robot_stays_still_and_ambiguous():
     assert RecoveryConfig().move_to_tell_apart is False
     run, res = _drive(ROBOT, HOUSE, HOUSE_POSE, 5.0)

@@ -13,7 +13,7 @@ from robot.base.geometry import compose_se2
 from robot.config import load_robot_config
 from robot.control.recovery import views_from_latest
 from robot.localization.relocalize import AMBIGUOUS, UNIQUE, Relocalizer
-from robot.localization.viewpoint import CLEARANCE, ViewpointPlanner, segment_distance, wall_segments
+from robot.localization.viewpoint import CLEARANCE, MIN_SHARE, ViewpointPlanner, plan_recovery_move, segment_distance, wall_segments
 from robot.maps.plane_map import PlaneMap, load_plane_map, make_plane
 
 ROBOT = load_robot_config("config/robot.yaml")
@@ -114,3 +114,39 @@ def test_one_planned_move_turns_an_ambiguous_house_view_into_the_right_unique_on
     res2 = rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30)))
     assert res2.verdict == UNIQUE, res2.reason
     assert _near(res2.hypotheses[0], moved)
+
+
+# Two offices of the institute floor 6 m apart, alike from where the robot stands in either (the
+# relocalization benchmark's turn left these two), near the office's wall: every single move that
+# would show a difference runs into a wall in one of them.
+INSTITUTE_TWINS = [(5.579, 6.283, 3.068), (11.579, 6.283, 3.068)]
+
+
+def test_where_no_single_move_tells_two_offices_apart_a_path_of_two_does():
+    plane_map = load_plane_map("config/maps/institute_ground.yaml")
+    planner = ViewpointPlanner(ROBOT, plane_map)
+    assert planner.alike_pairs(INSTITUTE_TWINS, MIN_SHARE) == 1
+    assert planner.plan(INSTITUTE_TWINS) is None  # one move allowed: none helps
+    move = planner.plan(INSTITUTE_TWINS, moves=2)
+    assert move is not None and move.then is not None and move.alike == 0 and move.alike_here == 1
+    first = (move.dx, move.dy, move.dphi)
+    second = move.then
+    # Each move faces its way, and each is clear of every wall in both offices from where it starts.
+    for dx, dy, dphi in (first, second):
+        assert dphi == pytest.approx(math.atan2(dy, dx)) and 0.0 < math.hypot(dx, dy) <= 2.0 + 1e-9
+    there = [compose_se2(p, first) for p in INSTITUTE_TWINS]
+    assert planner.clear(INSTITUTE_TWINS, first[:2], CLEARANCE) and planner.clear(there, second[:2], CLEARANCE)
+    # The first alone leaves the offices alike; after the second they look different.
+    assert planner.alike_pairs(there, MIN_SHARE) == 1
+    assert planner.alike_pairs([compose_se2(p, second) for p in there], MIN_SHARE) == 0
+    assert "then" in move.to_json()
+    # The recovery asks for two only with two moves left.
+    hyps = [_Hyp(*p) for p in INSTITUTE_TWINS]
+    assert plan_recovery_move(planner, hyps, 2.0, CLEARANCE, moves_left=1) == (
+        None, "no move of up to 2.0 m would tell the places apart")
+    assert plan_recovery_move(planner, hyps, 2.0, CLEARANCE, moves_left=2) == (first, "")
+
+
+class _Hyp:
+    def __init__(self, x, y, phi):
+        self.x, self.y, self.phi, self.refined = x, y, phi, True

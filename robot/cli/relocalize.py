@@ -59,6 +59,6 @@ def cmd_relocalize(args) -> int:
                 print(f"    (that alone does not: then turn {math.degrees(move.then[2]):+.0f} deg and drive "
                       f"{math.hypot(move.then[0], move.then[1]):.2f} m, and relocalize again)")
         elif res.verdict == AMBIGUOUS:
-            most = "two moves" if robot.recovery.max_moves >= 2 else "a move"
+            most = "path of two moves" if robot.recovery.max_moves >= 2 else "move"
             print(f"  no {most} of up to {MAX_DISTANCE:.1f} m would tell these places apart better")
     return 1 if res.verdict == NONE else 0

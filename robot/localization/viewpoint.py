@@ -13,16 +13,18 @@ hypotheses apart where their predicted depths differ by more than ``DEPTH_APART`
 predicts a wall nearer than ``SURE_RANGE`` and the other none (farther, a D435i often returns
 nothing at all). A pair stays *alike* when fewer than ``min_share`` of the grid's pixels tell it
 apart. The move taken leaves the fewest alike pairs, fewer than where the robot stands; among
-equals the shortest (the least driving while not localized). Where no single move does (the
-way that shows a difference runs into a wall: out of a small office, round a corner), and the
-recovery may move twice, a path of two such moves is searched: the first clear in every
-hypothesis, the second clear from where the first ends in every hypothesis. Only the first is
-returned to drive (with the second as ``then``): the relocalization after it plans again from
-what it then sees, and a single move then finds the second leg, or a better one. Hypotheses at the same place
+equals the shortest (the least driving while not localized). Hypotheses at the same place
 (``SAME_PLACE_XY``, ``SAME_PLACE_PHI``) count once. A move must keep the robot's circumscribed
 circle plus ``clearance`` off every wall in *every* hypothesis (the robot is at one of them, not
 known which). Site clutter is left to the protective stop, which stays in force while the
 robot moves.
+
+Where no single move tells all places apart (the way that would runs into a wall: out of a
+small office, round a corner) and the recovery may move twice or more, paths of two moves are
+searched as well: the first clear in every hypothesis, the second clear from where the first
+ends in every hypothesis. A path that leaves fewer places alike than the best single move is
+taken, but only its first move is driven (the second is ``then``): the relocalization after it
+sees what it sees, and the next plan starts from that verdict.
 
 Measured (2026-12-07, the relocalization benchmark's scenes, realistic camera, site clutter):
 in a house (fzk_haus_ground) one planned move of 0.5 to 2 m turned 9 of 17 one-view ambiguous
@@ -242,8 +244,8 @@ class ViewpointPlanner:
         """The move (up to ``max_distance``, in ``steps`` lengths and DIRECTIONS directions, the
         robot turned to face the way) after which the fewest pairs of ``poses`` (the robot's present
         pose hypotheses, best first) look alike; None if no move leaves fewer than where the robot
-        stands, or there is one place. With ``moves`` >= 2 and no single move that does, the first
-        move of the best two-move path (its second in ``then``)."""
+        stands, or there is one place. With ``moves`` >= 2, where a path of two moves leaves fewer
+        alike than any single move, its first move (the second in ``then``)."""
         places = self.places([(float(p[0]), float(p[1]), float(p[2])) for p in poses])
         if len(places) < 2 or not max_distance > 0.0:
             return None
@@ -258,19 +260,32 @@ class ViewpointPlanner:
             alike = self.alike_pairs([compose_se2(p, move) for p in places], min_share)
             if alike < here and (best is None or alike < best.alike):
                 best = Move(move[0], move[1], move[2], alike, here, len(places))
-        if best is not None or moves < 2:
+        if moves < 2 or (best is not None and best.alike == 0):
             return best
-        return self._two_moves(places[:TWO_MOVE_PLACES], candidates, clearance, min_share, len(places))
+        # Two moves where one leaves places alike (none does, or one pair still is): the path that
+        # leaves the fewest, if fewer than the best single move does.
+        path = self._two_moves(places[:TWO_MOVE_PLACES], candidates, clearance, min_share)
+        if path is None:
+            return best
+        first, second = path
+        there = [compose_se2(p, first) for p in places]
+        if len(places) > TWO_MOVE_PLACES and not (self.clear(places, first[:2], clearance)
+                                                  and self.clear(there, second[:2], clearance)):
+            return best
+        alike = self.alike_pairs([compose_se2(p, second) for p in there], min_share)
+        if alike < (here if best is None else best.alike):
+            return Move(first[0], first[1], first[2], alike, here, len(places), then=second)
+        return best
 
     def _two_moves(self, places: List[Pose], candidates: List[Tuple[float, float, float]], clearance: float,
-                   min_share: float, n_places: int) -> Optional[Move]:
-        """The first move of the path of two (each one of ``candidates``, each clear from where it
-        starts in every hypothesis) after which the fewest pairs of ``places`` look alike, fewer
-        than where the robot stands; among equals the shortest path."""
+                   min_share: float) -> Optional[Tuple[Tuple[float, float, float], Tuple[float, float, float]]]:
+        """The path of two moves (each one of ``candidates``, each clear from where it starts in
+        every hypothesis) after which the fewest pairs of ``places`` look alike, fewer than where
+        the robot stands; among equals the shortest. None if there is none."""
         here = self.alike_pairs(places, min_share)
         if here == 0:
             return None
-        best: Optional[Tuple[int, float, Move]] = None
+        best: Optional[Tuple[int, float, Tuple, Tuple]] = None
         for first in candidates:
             if not self.clear(places, first[:2], clearance):
                 continue
@@ -278,14 +293,14 @@ class ViewpointPlanner:
             d1 = math.hypot(first[0], first[1])
             for second in candidates:
                 length = d1 + math.hypot(second[0], second[1])
-                if best is not None and length >= best[1] and best[0] == 0:
-                    continue  # (nothing shorter can be found here than a path that tells all apart)
+                if best is not None and best[0] == 0 and length >= best[1]:
+                    continue  # (nothing here can beat a shorter path that tells them all apart)
                 if not self.clear(there, second[:2], clearance):
                     continue
                 alike = self.alike_pairs([compose_se2(p, second) for p in there], min_share)
                 if alike < here and (best is None or (alike, length) < best[:2]):
-                    best = (alike, length, Move(first[0], first[1], first[2], alike, here, n_places, then=second))
-        return None if best is None else best[2]
+                    best = (alike, length, first, second)
+        return None if best is None else (best[2], best[3])
 
     @staticmethod
     def _moves(max_distance: float, steps: int) -> List[Tuple[float, float, float]]:
@@ -307,7 +322,7 @@ def plan_recovery_move(planner: ViewpointPlanner, hypotheses: Sequence, max_dist
     poses = [(h.x, h.y, h.phi) for h in hypotheses if h.refined]
     move = planner.plan(poses, max_distance, clearance, moves=min(2, moves_left))
     if move is None:
-        most = "two moves" if moves_left >= 2 else "a move"
+        most = "path of two moves" if moves_left >= 2 else "move"
         return None, f"no {most} of up to {max_distance:.1f} m would tell the places apart"
     return (move.dx, move.dy, move.dphi), ""
 
