@@ -33,6 +33,7 @@ one-panel model must keep it; the table's last column leaves these poses out as 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import os
@@ -284,13 +285,31 @@ def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views
     (frames, odometry pose in the first view's frame), the last one taken at the true ``pose``),
     each relocalized with all views before it and the moved one, as the recovery does: (verdict
     and length with one move allowed, the same with up to ``max_moves``; 'no_move' where none is
-    planned). With more moves allowed the first plan may be the first of two moves (none alone
-    telling the places apart), which one move allowed does not make."""
-    one, one_len = "no_move", 0.0
+    planned). With more moves allowed the first plan may be the first of two moves, which one
+    move allowed never makes: the one-move outcome is then driven on its own, from a copy of
+    ``rng`` as it stood (the same draws as a run with one move allowed)."""
+    first_plan = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, max_moves))
+    one: Tuple[str, float] = ("no_move", 0.0)
+    if first_plan is not None and first_plan.then is not None:
+        single = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=1)
+        if single is not None:
+            one = _drive_moves(rel, planner, scene, pose, list(views), res, copy.deepcopy(rng), noise, 1, single)[0]
+    last, after_first = _drive_moves(rel, planner, scene, pose, list(views), res, rng, noise, max_moves, first_plan)
+    if first_plan is not None and first_plan.then is None:
+        one = after_first  # the first move was the single move a one-move recovery makes
+    return one[0], one[1], last[0], last[1]
+
+
+def _drive_moves(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views, res, rng, noise, max_moves: int,
+                 move) -> Tuple[Tuple[str, float], Tuple[str, float]]:
+    """Drive ``move`` (planned from ``res``) and the moves planned after it while the verdict
+    stays ambiguous, up to ``max_moves`` in all: (the last verdict, the path's length) and the
+    same after the first move."""
     verdict, total = "no_move", 0.0
-    views = list(views)
+    after_first = (verdict, total)
     for left in range(max_moves, 0, -1):
-        move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, left))
+        if left < max_moves:
+            move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, left))
         if move is None:
             break
         moved = compose_se2(pose, (move.dx, move.dy, move.dphi))
@@ -300,11 +319,11 @@ def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views
         first, more = views_from_latest(views)
         res = rel.relocalize(first, more_views=more, seed=int(rng.integers(1 << 30)))
         verdict, total, pose = classify(res, moved), total + move.distance, moved
-        if left == max_moves and move.then is None:
-            one, one_len = verdict, move.distance  # what the recovery with one move allowed ends with
+        if left == max_moves:
+            after_first = (verdict, total)
         if res.verdict != AMBIGUOUS:
             break
-    return one, one_len, verdict, total
+    return (verdict, total), after_first
 
 
 def _note_move(table: Dict[str, int], lengths: List[float], k: str, length: float, sym: bool,

@@ -30,15 +30,16 @@ class RecoveryConfig:
     turn_step_deg: float = number(45.0, 10.0, 180.0, "deg", "heading turned between two views")
     max_turn_deg: float = number(360.0, 10.0, 360.0, "deg", "largest heading turned in one relocalization "
                                  "(views at multiples of turn_step_deg up to this, a view at 360 deg repeats the first)")
-    move_to_tell_apart: bool = flag(False, "when a relocalization stays ambiguous (after the turn, if any), drive a "
-                                    "short straight move, heading kept, after which the map predicts different depth "
-                                    "for the hypotheses, clear of the walls in every one of them, and relocalize "
-                                    "again with all views")
+    move_to_tell_apart: bool = flag(False, "when a relocalization stays ambiguous (after the turn, if any), turn on "
+                                    "the spot to face the way and drive a short straight move after which the map "
+                                    "predicts different depth for the hypotheses, clear of the walls in every one of "
+                                    "them, and relocalize again with all views")
     move_max_distance: float = number(2.0, 0.1, 5.0, "m", "longest such move")
     move_clearance: float = number(0.15, 0.0, 1.0, "m", "kept between the robot's circumscribed circle and every map "
                                    "wall along the move, in every hypothesis (site clutter is the protective stop's)")
     move_speed: float = number(0.1, 0.02, 0.5, "m/s", "speed of the move (also capped at control.max_speed)")
-    max_moves: int = integer(1, 1, 5, "", "moves per relocalization trigger")
+    max_moves: int = integer(2, 1, 5, "", "moves per relocalization trigger (from 2, where no single move tells the "
+                             "places apart, a path of two: the first is driven, the next planned from the view there)")
 
     def __post_init__(self):
         check_fields(self, "recovery")
