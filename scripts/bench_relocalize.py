@@ -444,8 +444,9 @@ def move_table(results, at: int, at_two: int, title: str) -> List[str]:
              "| map | ambiguous poses | no move planned | moved | correct unique | unique, off within its hidden-wall "
              "bound | WRONG unique | ambiguous, truth in list | ambiguous, truth missing | none | of the moved "
              "map-symmetric ones: correct unique | up to two moves: moved | correct unique | WRONG unique | "
-             "ambiguous, truth in list | other (off within the bound, truth missing, none) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "ambiguous, truth in list | other (off within the bound, truth missing, none) | of the moved map-symmetric "
+             "ones: correct unique |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     tot: Dict[str, int] = {}
     lengths: List[float] = []
     lengths_two: List[float] = []
@@ -464,18 +465,46 @@ def move_table(results, at: int, at_two: int, title: str) -> List[str]:
         n_moved = n_all - plain.get("no_move", 0)
         sym_moved = sum(v for k, v in m.items() if k.startswith("sym_") and k != "sym_no_move")
         n_two = sum(two.values()) - two.get("no_move", 0)
+        sym_two = sum(v for k, v in m.items() if k.startswith(TWO + "sym_") and k != TWO + "sym_no_move")
         other = n_two - two.get("unique_ok", 0) - two.get("unique_wrong", 0) - two.get("ambiguous_with_truth", 0)
         lines.append(f"| {name} | {n_all} | {plain.get('no_move', 0)} | {n_moved} | {plain.get('unique_ok', 0)} | "
                      f"{plain.get('unique_bounded', 0)} | {plain.get('unique_wrong', 0)} | "
                      f"{plain.get('ambiguous_with_truth', 0)} | {plain.get('ambiguous_without_truth', 0)} | "
                      f"{plain.get('none', 0)} | {m.get('sym_unique_ok', 0)} of {sym_moved} | {n_two} | "
                      f"{two.get('unique_ok', 0)} | {two.get('unique_wrong', 0)} | {two.get('ambiguous_with_truth', 0)} | "
-                     f"{other} |")
+                     f"{other} | {m.get(TWO + 'sym_unique_ok', 0)} of {sym_two} |")
     if lengths:
         lines += ["", f"Move length (one move): median {np.median(lengths):.2f} m, max {max(lengths):.2f} m."]
     if lengths_two:
         lines += [f"Path length with up to two moves: median {np.median(lengths_two):.2f} m, max "
                   f"{max(lengths_two):.2f} m."]
+    return lines + [""]
+
+
+def whole_recovery(results) -> List[str]:
+    """The recovery with everything on (the turn, then up to two moves), on the turn table's poses:
+    correct uniques over the poses that are not map-symmetric from the turn's views (a pose the
+    moves resolved counts where it is not; those it resolved that are, are counted apart)."""
+    lines = ["**The whole recovery: the in-place turn, then up to two planned moves** (the turn table's poses)", "",
+             "| map | poses not map-symmetric after the turn | correct unique after the turn | ... and after the moves "
+             "| WRONG unique | map-symmetric after the turn made correct unique by the moves |",
+             "|---|---|---|---|---|---|"]
+    tot = [0, 0, 0, 0, 0]
+    for name in MAPS + ["**all**"]:
+        if name == "**all**":
+            row = tot
+        else:
+            turn, moved = results[name][2], results[name][7]
+            total = sum(v for k, v in turn.items() if not k.startswith(("sym_", "ptwin_")))
+            rest = total - sum(v for k, v in turn.items() if k.startswith("sym_"))
+            u_turn = turn.get("unique_ok", 0)
+            by_moves = moved.get(TWO + "unique_ok", 0) - moved.get(TWO + "sym_unique_ok", 0)
+            wrong = turn.get("unique_wrong", 0) + moved.get(TWO + "unique_wrong", 0)
+            row = [rest, u_turn, u_turn + by_moves, wrong, moved.get(TWO + "sym_unique_ok", 0)]
+            tot = [a + b for a, b in zip(tot, row)]
+        rest, u_turn, u_all, wrong, sym_ok = row
+        lines.append(f"| {name} | {rest} | {u_turn} ({100.0 * u_turn / max(rest, 1):.0f} %) | {u_all} "
+                     f"({100.0 * u_all / max(rest, 1):.0f} %) | {wrong} | {sym_ok} |")
     return lines + [""]
 
 
@@ -648,6 +677,7 @@ def run(quick: bool = False) -> str:
         "the recovery with `turn_in_place` and `move_to_tell_apart` both on): planned from the turn's last verdict, "
         "driven as above, relocalized with every view of the turn and the moved one. 'Map-symmetric' is the turn "
         "table's."))
+    lines += whole_recovery(results)
     lines += panel_table(quick, noise)
     lines += ["| map | median s | p95 s (one view) |", "|---|---|---|"]
     for name in MAPS:
