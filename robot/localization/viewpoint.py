@@ -27,10 +27,11 @@ taken, but only its first move is driven (the second is ``then``): the relocaliz
 sees what it sees, and the next plan starts from that verdict.
 
 Measured (2026-12-07, the relocalization benchmark's scenes, realistic camera, site clutter):
-in a house (fzk_haus_ground) one planned move of 0.5 to 2 m turned 9 of 17 one-view ambiguous
-verdicts into a correct unique one, map-symmetric ones among them; in an office floor whose
-offices repeat (institute_ground), 2 of 30: from inside one of identical offices no short move
-shows a difference.
+one planned move of 0.5 to 2 m made 7 of 8 moved one-view ambiguous verdicts a correct unique
+one in a house (fzk_haus_ground) and 16 of 30 in an office floor whose offices repeat
+(institute_ground), map-symmetric ones among them. With up to two moves (a path of two where
+no single move does), 29 of 42 moved poses over the four maps against 23 of 40, and after a full
+in-place turn 8 of 11 against 2 of 4; no wrong unique verdict.
 
 Pure geometry on the map: no frames, no I/O.
 """
