@@ -261,10 +261,16 @@ def test_exact_twins_are_told_apart_by_one_move(twin_rooms):
     assert res.finished, res.reason
 
 
-def test_in_a_row_of_alike_offices_the_robot_moves_until_the_views_tell_them_apart():
+def test_in_a_row_of_alike_offices_the_robot_moves_again_and_again_and_is_never_wrong():
     # An office of the institute floor whose view fits offices 6 m along the corridor (and more):
     # no single move tells them all apart from here, a path of two does (viewpoint's two-move
-    # search), and the recovery may move three times.
+    # search), and the recovery may move three times. The offices' scores tie to the last digits,
+    # so which is listed first (and with it the first move) differs between numpy's code and the
+    # compiled kernels: with the kernels two moves make the verdict unique, without them three
+    # leave it ambiguous. Either way every move is driven to its end from where the robot stands
+    # (a second move planned within the control tick that saw the first end once started from
+    # the first one's start: the third move then drove sideways and the protective stop ended it),
+    # and no verdict is wrong.
     plane_map = load_plane_map("config/maps/institute_ground.yaml")
     robot = replace(MOVING_ROBOT, recovery=replace(MOVING_ROBOT.recovery, max_moves=3))
     pose = (6.568, 6.191, math.radians(-27.9))
@@ -272,13 +278,22 @@ def test_in_a_row_of_alike_offices_the_robot_moves_until_the_views_tell_them_apa
     _, _, _, first, hyps = run.at_relocalization[0]
     assert first == "ambiguous" and len(hyps) >= 2
     states = [s for _, s in run.recovery_log]
-    assert states.count(MOVING) >= 2 and states.index(MOVING) < states.index(CONFIRMING)
-    t_unique, truth, views, verdict, hyps = next(r for r in run.at_relocalization if r[3] == "unique")
-    assert views >= 3  # the first view and one after each move
-    assert _moved(hyps[0], truth) < 0.01 and abs(math.remainder(hyps[0]["phi"] - truth[2], 2 * math.pi)) < math.radians(0.5)
-    assert all(v != "unique" for t, v in run.relocalizations if t < t_unique)
-    assert res.finished, res.reason
-    assert max(r.error for r in res.targets) < 0.01
+    moves = states.count(MOVING)
+    assert moves >= 2
+    rec = run.core.recovery
+    assert "stopped" not in rec.turn_note, rec.turn_note
+    # Each move ended in a relocalization with one more view: the first and one after each move.
+    assert max(r[2] for r in run.at_relocalization) == 1 + moves
+    for _, truth, _, verdict, hyps in run.at_relocalization:
+        assert any(_moved(h, truth) < 0.03 for h in hyps)  # the truth is never lost
+        if verdict == "unique":
+            assert _moved(hyps[0], truth) < 0.01
+            assert abs(math.remainder(hyps[0]["phi"] - truth[2], 2 * math.pi)) < math.radians(0.5)
+    if any(v == "unique" for _, v in run.relocalizations):
+        assert CONFIRMING in states and res.finished, res.reason
+        assert max(r.error for r in res.targets) < 0.01
+    else:
+        assert moves == 3 and not res.finished
 
 
 def test_without_move_to_tell_apart_the_robot_stays_still_and_ambiguous():

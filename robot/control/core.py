@@ -137,6 +137,7 @@ class ControllerCore:
         self._move_yaw_lim = AxisLimiter(min(robot.recovery.turn_rate, c.max_yaw_rate), c.max_yaw_accel, c.max_yaw_jerk)
         self._move_t: Optional[float] = None
         self._move_start: Optional[Tuple[float, float, float]] = None
+        self._move_serial = 0  # recovery.move_serial of the move _move_start belongs to
         self._move_yaw0 = 0.0  # unwrapped odometry heading where it started
         self._move_facing = False  # the turn to face the way is done
         self._move_dir = (1.0, 0.0)
@@ -598,8 +599,11 @@ class ControllerCore:
         c = self.robot.control
         dt = 1.0 / c.rate if self._move_t is None else min(max(t - self._move_t, 0.0), c.max_dt)
         self._move_t = t
-        if rec.moving and self._move_start is None:
+        if rec.moving and (self._move_start is None or self._move_serial != rec.move_serial):
+            # A new move: from where the robot stands now (the one before may have ended, been
+            # relocalized and replanned before a tick saw the robot still and forgot it).
             self._move_start, self._move_yaw0, self._move_facing = self._turn_rel, self._turn_yaw, False
+            self._move_serial, self._move_dir = rec.move_serial, (1.0, 0.0)
         if rec.moving:
             self._stop_if_blocked(t, rec.move_stopped, lim, yaw_lim)
         wz_target, v_target, dist = 0.0, 0.0, math.inf

@@ -100,6 +100,9 @@ class RecoverySupervisor:
     move_goal: Tuple[float, float, float] = (0.0, 0.0, 0.0)
     wants_move_plan: bool = False  # the shell should plan a move from ``hypotheses`` (move_planned)
     _moves: int = 0  # moves made for this trigger
+    # Counts every move ever started: the core starts a move afresh when it changes (two moves
+    # can follow each other within one control tick: the robot still, relocalized, a new plan).
+    move_serial: int = 0
 
     # -- inputs ------------------------------------------------------------------------------
 
@@ -214,6 +217,7 @@ class RecoverySupervisor:
             self._may_turn, self.turn_note = False, note  # the retries look from here, without turning or moving
             return
         self._moves += 1
+        self.move_serial += 1
         self.state, self.move_goal = MOVING, (float(move[0]), float(move[1]), float(move[2]))
         self.reason = (f"moving {math.hypot(move[0], move[1]):.2f} m (turning {math.degrees(move[2]):+.0f} deg to "
                        f"face the way first) for a view that tells the places apart ({reason})")
