@@ -279,6 +279,11 @@ def frames_at(scene, pose, rng, noise):
     return [render_depth_frame(ROBOT, scene, c.name, pose, rng=rng, noise=noise) for c in ROBOT.cameras]
 
 
+def _refined_poses(res) -> List[Tuple[float, float, float]]:
+    """The poses the recovery plans a move from (the refined hypotheses, best first)."""
+    return [(h.x, h.y, h.phi) for h in res.hypotheses if h.refined]
+
+
 def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views, res, rng, noise,
                  max_moves: int = 2) -> Tuple[str, float, str, float]:
     """The verdicts after the planned moves from an ambiguous verdict ``res`` on ``views`` (each
@@ -288,10 +293,10 @@ def planned_move(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views
     planned). With more moves allowed the first plan may be the first of two moves, which one
     move allowed never makes: the one-move outcome is then driven on its own, from a copy of
     ``rng`` as it stood (the same draws as a run with one move allowed)."""
-    first_plan = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, max_moves))
+    first_plan = planner.plan(_refined_poses(res), moves=min(2, max_moves))
     one: Tuple[str, float] = ("no_move", 0.0)
     if first_plan is not None and first_plan.then is not None:
-        single = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=1)
+        single = planner.plan(_refined_poses(res), moves=1)
         if single is not None:
             one = _drive_moves(rel, planner, scene, pose, list(views), res, copy.deepcopy(rng), noise, 1, single)[0]
     last, after_first = _drive_moves(rel, planner, scene, pose, list(views), res, rng, noise, max_moves, first_plan)
@@ -309,7 +314,7 @@ def _drive_moves(rel: Relocalizer, planner: ViewpointPlanner, scene, pose, views
     after_first = (verdict, total)
     for left in range(max_moves, 0, -1):
         if left < max_moves:
-            move = planner.plan([(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, left))
+            move = planner.plan(_refined_poses(res), moves=min(2, left))
         if move is None:
             break
         moved = compose_se2(pose, (move.dx, move.dy, move.dphi))

@@ -20,7 +20,7 @@ def register(sub) -> None:
 def cmd_relocalize(args) -> int:
     from robot.base.errors import InputError
     from robot.localization.relocalize import AMBIGUOUS, NONE, Relocalizer
-    from robot.localization.viewpoint import MAX_DISTANCE, ViewpointPlanner
+    from robot.localization.viewpoint import ViewpointPlanner, no_move_reason
     from robot.recording.snapshot import load_snapshot
 
     robot, plane_map = load_robot_and_map(args)
@@ -34,10 +34,12 @@ def cmd_relocalize(args) -> int:
     res = relocalizer.relocalize(frames, region=args.region)
     move = None
     if res.verdict == AMBIGUOUS:
-        # Where the robot could look from next so that the views tell the places apart.
-        # (A path of two moves where none alone does, as the recovery plans with max_moves >= 2.)
+        # Where the robot could look from next so that the views tell the places apart, planned as
+        # the recovery would (its distance, clearance and moves; a path of two where none alone does).
+        rc = robot.recovery
         move = ViewpointPlanner(robot, plane_map, relocalizer.index).plan(
-            [(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], moves=min(2, robot.recovery.max_moves))
+            [(h.x, h.y, h.phi) for h in res.hypotheses if h.refined], rc.move_max_distance, rc.move_clearance,
+            moves=min(2, rc.max_moves))
     if args.json:
         print_json({**res.to_json(), "move": None if move is None else move.to_json()})
     else:
@@ -59,6 +61,5 @@ def cmd_relocalize(args) -> int:
                 print(f"    (that alone does not: then turn {math.degrees(move.then[2]):+.0f} deg and drive "
                       f"{math.hypot(move.then[0], move.then[1]):.2f} m, and relocalize again)")
         elif res.verdict == AMBIGUOUS:
-            most = "path of two moves" if robot.recovery.max_moves >= 2 else "move"
-            print(f"  no {most} of up to {MAX_DISTANCE:.1f} m would tell these places apart better")
+            print(f"  {no_move_reason(rc.move_max_distance, rc.max_moves)}")
     return 1 if res.verdict == NONE else 0

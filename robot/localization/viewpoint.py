@@ -268,21 +268,21 @@ class ViewpointPlanner:
         path = self._two_moves(places[:TWO_MOVE_PLACES], candidates, clearance, min_share)
         if path is None:
             return best
-        first, second = path
-        there = [compose_se2(p, first) for p in places]
-        if len(places) > TWO_MOVE_PLACES and not (self.clear(places, first[:2], clearance)
-                                                  and self.clear(there, second[:2], clearance)):
-            return best
-        alike = self.alike_pairs([compose_se2(p, second) for p in there], min_share)
+        alike, first, second = path
+        if len(places) > TWO_MOVE_PLACES:  # (searched among the best few: judged again over all of them)
+            there = [compose_se2(p, first) for p in places]
+            if not (self.clear(places, first[:2], clearance) and self.clear(there, second[:2], clearance)):
+                return best
+            alike = self.alike_pairs([compose_se2(p, second) for p in there], min_share)
         if alike < (here if best is None else best.alike):
             return Move(first[0], first[1], first[2], alike, here, len(places), then=second)
         return best
 
     def _two_moves(self, places: List[Pose], candidates: List[Tuple[float, float, float]], clearance: float,
-                   min_share: float) -> Optional[Tuple[Tuple[float, float, float], Tuple[float, float, float]]]:
+                   min_share: float) -> Optional[Tuple[int, Tuple[float, float, float], Tuple[float, float, float]]]:
         """The path of two moves (each one of ``candidates``, each clear from where it starts in
         every hypothesis) after which the fewest pairs of ``places`` look alike, fewer than where
-        the robot stands; among equals the shortest. None if there is none."""
+        the robot stands; among equals the shortest: (pairs alike after it, first, second), or None."""
         here = self.alike_pairs(places, min_share)
         if here == 0:
             return None
@@ -301,7 +301,7 @@ class ViewpointPlanner:
                 alike = self.alike_pairs([compose_se2(p, second) for p in there], min_share)
                 if alike < here and (best is None or (alike, length) < best[:2]):
                     best = (alike, length, first, second)
-        return None if best is None else (best[2], best[3])
+        return None if best is None else (best[0], best[2], best[3])
 
     @staticmethod
     def _moves(max_distance: float, steps: int) -> List[Tuple[float, float, float]]:
@@ -323,9 +323,14 @@ def plan_recovery_move(planner: ViewpointPlanner, hypotheses: Sequence, max_dist
     poses = [(h.x, h.y, h.phi) for h in hypotheses if h.refined]
     move = planner.plan(poses, max_distance, clearance, moves=min(2, moves_left))
     if move is None:
-        most = "path of two moves" if moves_left >= 2 else "move"
-        return None, f"no {most} of up to {max_distance:.1f} m would tell the places apart"
+        return None, no_move_reason(max_distance, moves_left)
     return (move.dx, move.dy, move.dphi), ""
+
+
+def no_move_reason(max_distance: float, moves: int) -> str:
+    """Why nothing was planned, for ``plan(..., moves=moves)`` returning None."""
+    most = "path of two moves" if moves >= 2 else "move"
+    return f"no {most} of up to {max_distance:.1f} m would tell the places apart"
 
 
 def apart_share(z_a: np.ndarray, z_b: np.ndarray) -> float:
