@@ -343,8 +343,8 @@ def test_relocalizing_with_the_score_floors_gives_the_answers_without_them(reloc
              ((2.5, 2.0, 0.7), None, 0.0), ((5.916, 6.767, -2.76), None, 0.0), ((5.24, 2.033, -1.1), None, 0.0)]
     floored = relocalize._Scorer.score
 
-    def to_the_end(self, pose, coarse=False, rels=None, floor=-math.inf):
-        return floored(self, pose, coarse=coarse, rels=rels)
+    def to_the_end(self, pose, coarse=False, rels=None, floor=-math.inf, without=None):
+        return floored(self, pose, coarse=coarse, rels=rels, without=without)
 
     cut = []
     in_full = []
@@ -354,8 +354,8 @@ def test_relocalizing_with_the_score_floors_gives_the_answers_without_them(reloc
         in_full.append(1)
         return scored_in_full(*args)
 
-    def counted(self, pose, coarse=False, rels=None, floor=-math.inf):
-        out = floored(self, pose, coarse=coarse, rels=rels, floor=floor)
+    def counted(self, pose, coarse=False, rels=None, floor=-math.inf, without=None):
+        out = floored(self, pose, coarse=coarse, rels=rels, floor=floor, without=without)
         cut.append((coarse, self.last_cut))
         return out
 

@@ -53,6 +53,8 @@ def cmd_relocalize(args) -> int:
             for hw in h.hidden_walls:  # a panel standing in front of this wall would put the robot farther along
                 print(f"     {hw['plane']} may be hidden by a panel: the robot may then be up to {hw['up_to_m']:.2f} m "
                       f"farther along ({hw['direction'][0]:.2f}, {hw['direction'][1]:.2f})")
+            if h.unbuilt is not None:
+                print(f"     only if wall {h.unbuilt} is not built yet (this place needs it missing)")
         if move is not None:
             print(f"  a move that would tell {move.places} places apart ({move.alike} pairs alike after it, "
                   f"{move.alike_here} here): turn {math.degrees(move.dphi):+.0f} deg on the spot, then drive "

@@ -128,6 +128,23 @@ SECOND_PANEL_PRIOR = 2.0 * UNIQUE_MARGIN
 # and the truth, shifted along a direction the other walls fix, is no rival the one-panel scan
 # finds. Measured in fzk_haus_ground, in-place turns between panels 0.19 and 0.20 m in front of
 # opposite walls: unique answers 187 mm off, the truth 15 to 20 nats behind with two panels.
+# A wall of the model that is not built yet (a construction site builds its partitions late): the
+# right pose sees through it, into the room behind, and scores thousands of nats down, while a
+# place elsewhere that takes the room behind for its own explains the view. Measured with the
+# wall the front camera sees most of left unbuilt (60 poses each in fzk_haus_ground and
+# institute_ground, one view): 3 wrong unique answers 7 to 22 m off, each seeing through 2.3 to
+# 2.6 % of its own pixels (unique allows 3 %). So before a unique verdict the best is checked
+# against the places the walls in view were matched to: each scored without the wall it sees
+# through most (and UNBUILT_PRIOR nats for a wall missing), and one that comes within the margin
+# keeps the verdict ambiguous. Like a second panel, it only keeps a rival in the running: a
+# missing wall never ranks a place higher and never makes a unique verdict.
+# The prior: at 10 nats, 4 of 102 right unique answers in the same two buildings became ambiguous
+# (another place with one wall missing came within the margin); at 40, 2 did, and the same wrong
+# ones were caught (the right pose with the wall missing led them by 120 nats and more).
+UNBUILT_PRIOR = UNIQUE_MARGIN
+UNBUILT_CANDIDATES = 64  # places checked, in the order of how well the walls in view land on map walls
+UNBUILT_MIN_PIXELS = 8  # grid pixels seen through one wall, at the coarse stride
+UNBUILT_SAME_PLACE = (0.3, math.radians(5.0))  # m, rad: nearer the best is the best itself
 PANEL_MIN_OFFSET = 0.02  # m: nearer is the wall itself (as built)
 PANEL_MAX_OFFSET = 0.5  # m: what leans on or stands against a wall
 PANEL_MIN_PIXELS = 8  # grid pixels
@@ -210,6 +227,8 @@ class Hypothesis:
     loose: Optional[Tuple[float, float]] = None
     # m: that direction pinned by the score (Relocalizer._pin): the std given to it; None: not pinned.
     pinned: Optional[float] = None
+    # (a rival) the map wall, or coplanar group of walls, this place needs to be not built yet.
+    unbuilt: Optional[str] = None
 
     @property
     def top_score(self) -> float:
@@ -221,6 +240,7 @@ class Hypothesis:
                 "score": self.score, "support": self.support, "planes": list(self.planes),
                 "refined": self.refined, "status": self.status, "see_through": self.see_through,
                 **({"hidden_walls": list(self.hidden_walls)} if self.hidden_walls else {}),
+                **({"unbuilt": self.unbuilt} if self.unbuilt is not None else {}),
                 **({"pinned": {"direction": [float(c) for c in self.loose], "std_m": self.pinned}}
                    if self.pinned is not None and self.loose is not None else {})}
 
@@ -644,7 +664,8 @@ class _Scorer:
         return float(np.maximum(peak, 0.0).sum())
 
     def score(self, pose: Tuple[float, float, float], coarse: bool = False,
-              rels: Optional[Sequence[Pose]] = None, floor: float = -math.inf) -> Tuple[float, float, List[str]]:
+              rels: Optional[Sequence[Pose]] = None, floor: float = -math.inf,
+              without: Optional[str] = None) -> Tuple[float, float, List[str]]:
         """(log-likelihood, share of wall pixels that agree, supporting walls) of the frames at ``pose``.
 
         ``rels``: each view's pose relative to the first, if not the odometry's (refined for this pose).
@@ -658,6 +679,9 @@ class _Scorer:
         of it, scoring stops: ``last_cut`` is set and the first value returned is that upper
         bound, not the score (the others are 0 and []). Otherwise the result is the same as
         without a floor, to the bit.
+
+        ``without``: a wall group (``coplanar_groups``) scored as not built: left out of the
+        prediction, so what stands behind it is predicted there.
         """
         total, agree, scored, through = 0.0, 0, 0, 0
         seen: Dict[str, int] = {}
@@ -683,6 +707,8 @@ class _Scorer:
                 rel = rels[view]
             T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
             views = predict_views(self.map, self.index, T_gc, grid, self.max_range)
+            if without is not None:
+                views = [v for v in views if self.coplanar.get(v.plane_id, v.plane_id) != without]
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
             cols, rows = grid.rays
             # Each view's plane in C, a row per view: a pixel's plane by table lookup (a list of
@@ -743,6 +769,37 @@ class _Scorer:
         self.last_see_through = through / scored if scored else 0.0
         planes = [p for p, n in sorted(seen.items(), key=lambda kv: -kv[1]) if n >= 5]
         return score, support, planes
+
+    def see_through_by_wall(self, pose: Tuple[float, float, float], coarse: bool = False,
+                            rels: Optional[Sequence[Pose]] = None) -> Dict[str, int]:
+        """Per wall group (``coplanar_groups``), how many grid pixels the frames at ``pose`` measure
+        behind it (scored returns and free space alike, off the walls' edges, by the score's
+        3-sigma test): where a wall that is not built would be seen through."""
+        counts: Dict[str, int] = {}
+        for cam, grid, z, valid, free, rel, view in self.items:
+            if rels is not None:
+                rel = rels[view]
+            T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
+            views = predict_views(self.map, self.index, T_gc, grid, self.max_range)
+            if not views:
+                continue
+            label = rasterize_views(views, grid)
+            at = (label >= 0) & ~_label_edges(label) & (valid if free is None else valid | free)
+            r_idx, c_idx = np.nonzero(at)
+            if not len(r_idx):
+                continue
+            cols, rows = grid.rays
+            lab = label[r_idx, c_idx]
+            pis = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)[lab]
+            zm = z[r_idx, c_idx]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z_pred = -pis[:, 3] / (pis[:, 0] * cols[c_idx] + pis[:, 1] * rows[r_idx] + pis[:, 2])
+            behind = (z_pred > 0.0) & (zm - z_pred >= 3.0 * _depth_sigma(zm, coarse))
+            for k, n in enumerate(np.bincount(lab[behind], minlength=len(views)).tolist()):
+                if n:
+                    g = self.coplanar.get(views[k].plane_id, views[k].plane_id)
+                    counts[g] = counts.get(g, 0) + n
+        return counts
 
     def _panel_gains(self, panels: Dict[str, List[float]], in_front: List[Tuple]) -> None:
         """For each predicted wall with depth in front of it: what the pixels in front of their
@@ -1001,7 +1058,16 @@ class Relocalizer:
                     hyps_out[0] = best = pinned
             if best.status in FIX_STATUSES or (best.pinned is not None and supported(best) and not two_hidden(best)
                                                and best.see_through <= UNIQUE_SEE_THROUGH):
-                return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
+                unbuilt = self._unbuilt_rivals(best, clusters, scorer, coarse, margin, scale)
+                ms = (time.perf_counter() - t0) * 1e3
+                if not unbuilt:
+                    return RelocalizationResult(UNIQUE, hyps_out, "", ms, len(walls))
+                u = unbuilt[0]
+                return RelocalizationResult(
+                    AMBIGUOUS, _with_panels([best] + unbuilt, best.score - margin),
+                    f"a place {math.hypot(u.x - best.x, u.y - best.y):.1f} m away explains the views within "
+                    f"{margin:.0f} nats of the best if wall '{u.unbuilt}' is not built yet (a model can show walls "
+                    "a site does not have yet)", ms, len(walls))
         if len(close) == 1:
             h = hyps_out[0]
             if not h.refined:
@@ -1032,6 +1098,61 @@ class Relocalizer:
         return RelocalizationResult(AMBIGUOUS, _with_panels(close, best.score - margin),
                                     f"{len(close)} hypotheses within {margin:.0f} nats of each other: the views "
                                     "cannot tell them apart", ms, len(walls))
+
+    def _unbuilt_rivals(self, best: Hypothesis, clusters: Sequence[Tuple], scorer: _Scorer, coarse: _Scorer,
+                        margin: float, scale: float) -> List[Hypothesis]:
+        """Other places the walls in view were matched to (``clusters``, best matched first; up to
+        UNBUILT_CANDIDATES of them) that explain the views within ``margin`` of ``best`` if the
+        wall each sees through most is not built, UNBUILT_PRIOR taken: rivals of a unique
+        verdict. Each is scored without that wall on the coarse grid first, against the best's own
+        coarse score; one within the reach that has hypotheses refined (four margins) is placed by
+        the fine score (``_search_unbuilt``) and compared with the best's."""
+        bar = best.score - margin
+        coarse_bar = coarse.score((best.x, best.y, best.phi), coarse=True)[0] * scale - 4.0 * margin
+        out: List[Hypothesis] = []
+        tried = 0
+        for x, y, phi, _, _ in clusters:
+            if tried >= UNBUILT_CANDIDATES:
+                break
+            if any(math.hypot(x - h.x, y - h.y) < UNBUILT_SAME_PLACE[0]
+                   and abs(float(wrap_angle(phi - h.phi))) < UNBUILT_SAME_PLACE[1] for h in [best] + out):
+                continue
+            tried += 1
+            through = coarse.see_through_by_wall((x, y, phi), coarse=True)
+            if not through:
+                continue
+            group, n = max(through.items(), key=lambda kv: (kv[1], kv[0]))
+            if n < UNBUILT_MIN_PIXELS:
+                continue
+            s, _, _ = coarse.score((x, y, phi), coarse=True, without=group)
+            if s * scale - UNBUILT_PRIOR < coarse_bar:
+                continue
+            pose = self._search_unbuilt(scorer, (x, y, phi), group)
+            s, support, planes = scorer.score(pose, without=group)
+            if s - UNBUILT_PRIOR >= bar:
+                out.append(Hypothesis(pose[0], pose[1], pose[2], coarse_covariance(0.05, math.radians(3.0)),
+                                      s - UNBUILT_PRIOR, support, planes, False, "", scorer.last_see_through,
+                                      plain_score=scorer.last_plain - UNBUILT_PRIOR, unbuilt=group))
+        out.sort(key=lambda h: -h.score)
+        return out
+
+    def _search_unbuilt(self, scorer: _Scorer, pose: Pose, without: str) -> Pose:
+        """``pose`` moved by the fine score with the wall group ``without`` not built: coordinate
+        steps of 4, 2 and 1 cm and 1, 0.5 and 0.25 deg, each kept while it gains (a pair's pose is
+        centimetres and a degree off, and the fine score is sharp)."""
+        best_s = scorer.score(pose, without=without)[0]
+        for step_xy, step_phi in ((0.04, math.radians(1.0)), (0.02, math.radians(0.5)), (0.01, math.radians(0.25))):
+            for _ in range(VIEW_SEARCH_ROUNDS):
+                moved = False
+                for d in ((step_xy, 0.0, 0.0), (-step_xy, 0.0, 0.0), (0.0, step_xy, 0.0), (0.0, -step_xy, 0.0),
+                          (0.0, 0.0, step_phi), (0.0, 0.0, -step_phi)):
+                    q = (pose[0] + d[0], pose[1] + d[1], float(wrap_angle(pose[2] + d[2])))
+                    s = scorer.score(q, without=without)[0]
+                    if s > best_s:
+                        best_s, pose, moved = s, q, True
+                if not moved:
+                    break
+        return pose
 
     def _panel_rivals(self, best: Hypothesis, scorer: _Scorer, coarse: _Scorer, fixed: bool = True,
                       enough: float = math.inf, two: bool = False) -> List[Hypothesis]:
