@@ -299,3 +299,64 @@ def test_flipped_face_in_a_real_building_map_is_caught():
     issues, _ = check_map_data(data, max_thickness=0.05)
     assert codes(issues) == [("flipped", (target[0],))]
     assert "shared edges" in issues[0].message
+
+
+def test_a_wall_not_built_yet_is_kept_out_of_the_planes_and_saved_again(tmp_path):
+    """``built: false``: in the model, not on the site. Nothing predicts it; saving keeps it."""
+    from robot.maps.plane_map import parse_plane_map, save_plane_map
+
+    data = yaml.safe_load(Path("config/maps/paper_arena.yaml").read_text())
+    data["planes"][0]["built"] = False
+    wall = data["planes"][0]["id"]
+    pm = parse_plane_map(data, "site.yaml")
+    assert wall not in [p.id for p in pm.planes] and [p.id for p in pm.not_built] == [wall]
+    assert len(pm) == len(data["planes"]) - 1
+    save_plane_map(pm, tmp_path / "again.yaml")
+    again = load_plane_map(tmp_path / "again.yaml")
+    assert [p.id for p in again.not_built] == [wall] and len(again) == len(pm)
+    # The check checks it on its own and says what the site lacks; info lists it.
+    issues, checked = check_map_data(data, "site.yaml")
+    assert not [i for i in issues if i.severity == "error"] and [p.id for p in checked.not_built] == [wall]
+    out = io.StringIO()
+    with redirect_stdout(out):
+        assert cli_map.cmd_info(argparse.Namespace(map=str(tmp_path / "again.yaml"), png=None, robot=None,
+                                                   json=True)) == 0
+    assert json.loads(out.getvalue())["not_built"] == [wall]
+    # Bad values are one clear error naming the plane.
+    data["planes"][0]["built"] = "no"
+    with pytest.raises(ConfigError, match=rf"plane '{wall}'.*'built' must be true or false"):
+        parse_plane_map(data, "site.yaml")
+    for item in data["planes"]:
+        item["built"] = False
+    with pytest.raises(ConfigError, match="every plane is marked 'built: false'"):
+        parse_plane_map(data, "site.yaml")
+
+
+def test_where_a_wall_is_not_built_the_marked_map_localizes_and_the_drawn_one_says_why_not():
+    """The cameras see through a wall of the model that is not there: with the model as drawn
+    every localization there is `inconsistent` and says how to mark it; with the wall marked
+    ``built: false`` the same frames give a full fix within a centimetre."""
+    from drivers.sim.clutter import WallDeviation, built_walls
+    from drivers.sim.render import DepthNoise, SimScene, render_depth_frame
+    from robot.localization.localizer import FIX_STATUSES, Localizer, coarse_covariance
+    from robot.maps.plane_map import parse_plane_map
+
+    robot = load_robot_config("config/robot.yaml")
+    house = load_plane_map("config/maps/fzk_haus_ground.yaml")
+    data = yaml.safe_load(Path("config/maps/fzk_haus_ground.yaml").read_text())
+    for item in data["planes"]:
+        if item["id"] == "w005":
+            item["built"] = False
+    marked = parse_plane_map(data, "site.yaml")
+    pose = (2.851, 8.121, -0.849)  # facing w005 from 1 m
+    scene = SimScene(house, walls=built_walls(house, {"w005": WallDeviation(built=False)}))
+    # The marked map renders the same site: what it predicts is what stands.
+    assert len(SimScene(marked).polygons()) == len(scene.polygons())
+    frames = [render_depth_frame(robot, scene, c.name, pose, rng=np.random.default_rng(1), noise=DepthNoise.realistic())
+              for c in robot.cameras]
+    start, cov = (pose[0] + 0.01, pose[1] - 0.01, pose[2] + 0.005), coarse_covariance(0.02, math.radians(1.0))
+    drawn = Localizer(robot, house).localize(frames, start, cov)
+    assert drawn.status == "inconsistent" and "w005" in drawn.integrity["reason"]
+    assert "built: false" in drawn.integrity["reason"]
+    fixed = Localizer(robot, marked).localize(frames, start, cov)
+    assert fixed.status in FIX_STATUSES and math.hypot(fixed.x - pose[0], fixed.y - pose[1]) < 0.01

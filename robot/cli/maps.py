@@ -186,6 +186,8 @@ def cmd_info(args) -> int:
         lines.append(f"  camera band z {band[0]:.3f}..{band[1]:.3f} m: {s['planes_in_camera_band']} planes reach into it")
     if "ifc_types" in s:
         lines.append("  from " + ", ".join(f"{k} ({v})" for k, v in sorted(s["ifc_types"].items())))
+    if "not_built" in s:
+        lines.append(f"  not built yet (predicted nowhere): {', '.join(s['not_built'])}")
     if args.png:
         lines.append(f"  floor plan: {args.png}")
     _emit(args, s, lines)

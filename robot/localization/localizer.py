@@ -340,8 +340,12 @@ class Localizer:
             return verdict
         names = ", ".join(f"{w.report.id} ({w.report.camera}, depth {'behind' if w.evidence == 'behind' else 'in front of'} it)"
                           for w in behind + front)
+        # Where the cameras see through a wall, the pose is wrong or the wall is not built yet: the
+        # second is for a person on the site to say (the map's ``built: false``), never for this.
+        hint = ("; if a wall is not built yet, mark it 'built: false' in the map" if behind else "")
         return _Verdict(np.array(req.coarse), req.cov.copy(), "inconsistent", [], verdict.used, verdict.integrity,
-                        verdict.stack, f"the depth contradicts the pose where it predicts {names}", against_pose=True)
+                        verdict.stack, f"the depth contradicts the pose where it predicts {names}{hint}",
+                        against_pose=True)
 
     def _result(self, req: _Request, fits: Sequence[_WallFit], verdict: _Verdict, passes: int,
                 t0: float) -> LocalizationResult:

@@ -11,6 +11,11 @@ bows). A plane's own ``tolerance:`` wins; else the map's top-level ``tolerance:`
 from the IFC element type in its ``source`` (:func:`tolerance_for_source`); else
 ``DEFAULT_TOLERANCE``. The localizer counts it as an error of every measurement of that plane
 that more pixels cannot average away.
+
+A plane marked ``built: false`` is in the building model but not on the site yet (a site builds
+its partitions late): it is kept in ``PlaneMap.not_built`` and saved again, but left out of
+``planes``, so that nothing predicts it. A wall the map predicts where the cameras see through
+makes every localization there ``inconsistent``.
 """
 
 from __future__ import annotations
@@ -74,6 +79,8 @@ class MapPlane:
 class PlaneMap:
     planes: List[MapPlane]
     source: str = "<map>"
+    # In the building model, marked ``built: false``: not predicted anywhere (see the module note).
+    not_built: List[MapPlane] = field(default_factory=list)
 
     def __post_init__(self):
         self._index = {p.id: i for i, p in enumerate(self.planes)}
@@ -95,7 +102,8 @@ class PlaneMap:
 
     def to_yaml_data(self) -> Dict[str, Any]:
         out = []
-        for p in self.planes:
+        unbuilt = {p.id for p in self.not_built}
+        for p in self.planes + self.not_built:
             item: Dict[str, Any] = {"id": p.id}
             polys = [[[round(float(c), 6) for c in v] for v in poly] for poly in p.polygons]
             if len(polys) == 1:
@@ -106,6 +114,8 @@ class PlaneMap:
                 item["source"] = dict(p.source)
             if p.tolerance != tolerance_for_source(p.source):
                 item["tolerance"] = round(float(p.tolerance), 6)
+            if p.id in unbuilt:
+                item["built"] = False
             out.append(item)
         return {"planes": out}
 
@@ -170,6 +180,7 @@ def parse_plane_map(data: Any, source: str = "<map>") -> PlaneMap:
     if len(raw) > MAX_PLANES:
         top.fail(f"'planes' lists {len(raw)} planes, at most {MAX_PLANES} are allowed")
     planes: List[MapPlane] = []
+    not_built: List[MapPlane] = []
     seen = set()
     for i, item in enumerate(raw):
         sec = Section(item, f"planes[{i}]", source)
@@ -209,12 +220,17 @@ def parse_plane_map(data: Any, source: str = "<map>") -> PlaneMap:
         if not isinstance(src, dict):
             sec.fail("'source' must be a mapping")
         tol = sec.ranged("tolerance", TOLERANCE_RANGE) if sec.has("tolerance") else map_tolerance
+        built = sec.raw("built", True)
+        if not isinstance(built, bool):
+            sec.fail(f"'built' must be true or false, got {excerpt(built)}")
         sec.done()
         try:
-            planes.append(make_plane(pid, polygons, src, tolerance=tol))
+            (planes if built else not_built).append(make_plane(pid, polygons, src, tolerance=tol))
         except ValueError as e:
             raise ConfigError(f"{source}: {e}") from None
-    return PlaneMap(planes, source=source)
+    if not planes:
+        top.fail("every plane is marked 'built: false': nothing is left to localize against")
+    return PlaneMap(planes, source=source, not_built=not_built)
 
 
 def load_plane_map(path) -> PlaneMap:

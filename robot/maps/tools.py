@@ -114,6 +114,8 @@ def map_summary(plane_map: PlaneMap, band: Optional[Tuple[float, float]] = None)
         out["ifc_types"] = types
     if storeys:
         out["storeys"] = storeys
+    if plane_map.not_built:
+        out["not_built"] = [p.id for p in plane_map.not_built]
     if band is not None:
         inside = [p for p in plane_map.planes
                   if p.vertices[:, 2].max() > band[0] and p.vertices[:, 2].min() < band[1]]
@@ -406,11 +408,15 @@ def check_map_data(data: Any, source: str = "<map>", max_thickness: float = 0.6
         parse_plane_map(data, source)  # raises the loader's own message
     issues: List[MapIssue] = []
     valid = []
+    not_built = []
     seen: Dict[str, int] = {}
     for k, item in enumerate(data["planes"]):
         pid = str(item.get("id")) if isinstance(item, dict) else f"planes[{k}]"
+        # A plane not built yet is checked on its own as any other, and kept out of the checks
+        # of the planes together (nothing predicts it).
+        unbuilt = isinstance(item, dict) and item.get("built") is False
         try:
-            plane = parse_plane_map({"planes": [item]}, source).planes[0]
+            plane = parse_plane_map({"planes": [dict(item, built=True) if unbuilt else item]}, source).planes[0]
         except ConfigError as e:
             msg = str(e)
             if msg.startswith(source + ": "):
@@ -422,9 +428,9 @@ def check_map_data(data: Any, source: str = "<map>", max_thickness: float = 0.6
                                    f"id '{plane.id}' is used by planes[{seen[plane.id]}] and planes[{k}]"))
             continue
         seen[plane.id] = k
-        valid.append(plane)
+        (not_built if unbuilt else valid).append(plane)
     if not valid:
         return issues, None
-    pm = PlaneMap(valid, source=source)
+    pm = PlaneMap(valid, source=source, not_built=not_built)
     issues.extend(check_plane_map(pm, max_thickness))
     return issues, pm
