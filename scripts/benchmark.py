@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "scripts"))
 
 SECTIONS = ["bench_localizer", "bench_controller", "bench_cpu", "bench_buildings", "bench_protocol", "bench_ifc", "bench_realsense",
-            "bench_render", "bench_calibration", "bench_relocalize", "bench_safety", "bench_integrity",
+            "bench_render", "bench_calibration", "bench_relocalize", "bench_unbuilt", "bench_safety", "bench_integrity",
             "bench_fuzz"]
 
 
