@@ -33,6 +33,7 @@ one-panel model must keep it; the table's last column leaves these poses out as 
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import math
@@ -577,13 +578,37 @@ def front_wall(plane_map, index, pose):
     return None if best is None else best[1]
 
 
+def unbuilt_site(plane_map, index, seed: int, i_pose: int, pose):
+    """Pose ``i_pose`` of a map's one-view table with the wall its front camera sees most of left out
+    of the scene (in the map, not built): (scene, that pose's random stream after its clutter), or
+    None where the front camera sees no wall. The stream goes on as the one-view table's does."""
+    from drivers.sim.clutter import WallDeviation, built_walls
+
+    wall = front_wall(plane_map, index, pose)
+    if wall is None:
+        return None
+    rng = np.random.default_rng([seed, i_pose])
+    clutter, _ = _clutter(plane_map, rng, [pose[:2]])
+    return SimScene(plane_map, clutter=clutter, walls=built_walls(plane_map, {wall: WallDeviation(built=False)})), rng
+
+
+@contextlib.contextmanager
+def unbuilt_check_off():
+    """The relocalizer without its check for places that explain the views if a wall is missing."""
+    import robot.localization.relocalize as relocalize_module
+
+    kept = relocalize_module.UNBUILT_CANDIDATES
+    relocalize_module.UNBUILT_CANDIDATES = 0
+    try:
+        yield
+    finally:
+        relocalize_module.UNBUILT_CANDIDATES = kept
+
+
 def unbuilt_table(quick: bool, noise) -> List[str]:
     """One stationary view where the wall the front camera sees most of is in the map but not built
     (a site builds its partitions late): the cameras see through it. Each view relocalized twice, with
     the check for places that explain it if a wall is missing (relocalize.UNBUILT_*) and without it."""
-    import robot.localization.relocalize as relocalize_module
-    from drivers.sim.clutter import WallDeviation, built_walls
-
     lines = ["**A wall in view not built yet**", "",
              "The first free-space poses of each map's one-view table (the same clutter and camera model); the map wall "
              "the front camera sees most of is left out of the scene, so the cameras see through it, one stationary "
@@ -601,13 +626,10 @@ def unbuilt_table(quick: bool, noise) -> List[str]:
         c: Dict[str, int] = {}
         for i_pose in range(6 if quick else UNBUILT_POSES):
             pose = tuple(float(v) for v in poses[i_pose])
-            wall = front_wall(plane_map, rel.index, pose)
-            if wall is None:
+            site = unbuilt_site(plane_map, rel.index, seed, i_pose, pose)
+            if site is None:
                 continue
-            rng = np.random.default_rng([seed, i_pose])
-            clutter, _ = _clutter(plane_map, rng, [pose[:2]])
-            scene = SimScene(plane_map, clutter=clutter,
-                             walls=built_walls(plane_map, {wall: WallDeviation(built=False)}))
+            scene, rng = site
             frames = frames_at(scene, pose, rng, noise)
             rseed = int(rng.integers(1 << 30))
             res = rel.relocalize(frames, seed=rseed)
@@ -615,25 +637,23 @@ def unbuilt_table(quick: bool, noise) -> List[str]:
             c["poses"] = c.get("poses", 0) + 1
             c[k] = c.get(k, 0) + 1
             c["by_check"] = c.get("by_check", 0) + int(res.verdict == AMBIGUOUS and "not built" in res.reason)
-            kept = relocalize_module.UNBUILT_CANDIDATES
-            relocalize_module.UNBUILT_CANDIDATES = 0
-            try:
+            with unbuilt_check_off():
                 k0 = classify(rel.relocalize(frames, seed=rseed), pose)
-            finally:
-                relocalize_module.UNBUILT_CANDIDATES = kept
             c["before_" + k0] = c.get("before_" + k0, 0) + 1
-        lines.append(_unbuilt_row(name, c))
+        lines.append(unbuilt_row(name, c))
         for k, v in c.items():
             total[k] = total.get(k, 0) + v
-    lines += [_unbuilt_row("**all**", total), ""]
+    lines += [unbuilt_row("**all**", total), ""]
     return lines
 
 
-def _unbuilt_row(name: str, c: Dict[str, int]) -> str:
+def unbuilt_row(name: str, c: Dict[str, int], by_check: bool = True) -> str:
+    """A row of the unbuilt-wall tables from counts of ``classify``'s classes, with and ('before_')
+    without the check; ``by_check``: with the column of verdicts the check made ambiguous."""
     return (f"| {name} | {c.get('poses', 0)} | {c.get('unique_ok', 0) + c.get('unique_bounded', 0)} | "
             f"{c.get('unique_wrong', 0)} | {c.get('ambiguous_with_truth', 0)} | {c.get('ambiguous_without_truth', 0)} | "
-            f"{c.get('none', 0)} | {c.get('by_check', 0)} | "
-            f"{c.get('before_unique_ok', 0) + c.get('before_unique_bounded', 0)} | {c.get('before_unique_wrong', 0)} |")
+            f"{c.get('none', 0)} | " + (f"{c.get('by_check', 0)} | " if by_check else "")
+            + f"{c.get('before_unique_ok', 0) + c.get('before_unique_bounded', 0)} | {c.get('before_unique_wrong', 0)} |")
 
 
 def _panel_row(name: str, c: Dict[str, int]) -> str:

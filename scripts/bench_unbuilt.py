@@ -30,8 +30,6 @@ import numpy as np  # noqa: E402
 
 import robot.localization.relocalize as relocalize_module  # noqa: E402
 from drivers.sim.building import free_space_poses  # noqa: E402
-from drivers.sim.clutter import WallDeviation, built_walls  # noqa: E402
-from drivers.sim.render import SimScene  # noqa: E402
 from robot.control.recovery import views_from_latest  # noqa: E402
 from robot.maps.plane_map import load_plane_map  # noqa: E402
 
@@ -39,10 +37,9 @@ MAPS = ["fzk_haus_ground", "institute_ground", "duplex_level1"]
 POSES = 20  # per map
 
 
-def _turn(rel, scene, pose, seed: int, i_pose: int, noise) -> str:
-    """The one-view draw of ``bench_relocalize.run_map``, then the turn; the verdict's class."""
-    rng = np.random.default_rng([seed, i_pose])
-    B._clutter(rel.map, rng, [pose[:2]])  # (drawn again: the stream as the scene's was made)
+def _turn(rel, scene, rng, pose, noise) -> str:
+    """The one-view draw of ``bench_relocalize.run_map`` (``rng``: the pose's stream after its
+    clutter), then the turn; the verdict's class."""
     frames = B.frames_at(scene, pose, rng, noise)
     res = rel.relocalize(frames, seed=int(rng.integers(1 << 30)))
     step = math.radians(B.TURN_STEP_DEG)
@@ -81,34 +78,20 @@ def run(quick: bool = False) -> str:
         c: Dict[str, int] = {}
         for i_pose in range(n):
             pose = tuple(float(v) for v in poses[i_pose])
-            wall = B.front_wall(plane_map, rel.index, pose)
-            if wall is None:
+            site = B.unbuilt_site(plane_map, rel.index, seed, i_pose, pose)
+            if site is None:
                 continue
-            clutter, _ = B._clutter(plane_map, np.random.default_rng([seed, i_pose]), [pose[:2]])
-            scene = SimScene(plane_map, clutter=clutter,
-                             walls=built_walls(plane_map, {wall: WallDeviation(built=False)}))
             c["poses"] = c.get("poses", 0) + 1
-            k = _turn(rel, scene, pose, seed, i_pose, noise)
+            k = _turn(rel, *site, pose, noise)
             c[k] = c.get(k, 0) + 1
-            kept = relocalize_module.UNBUILT_CANDIDATES
-            relocalize_module.UNBUILT_CANDIDATES = 0
-            try:
-                k0 = _turn(rel, scene, pose, seed, i_pose, noise)
-            finally:
-                relocalize_module.UNBUILT_CANDIDATES = kept
+            with B.unbuilt_check_off():  # the same scene and draws again: a fresh copy of the pose's stream
+                k0 = _turn(rel, *B.unbuilt_site(plane_map, rel.index, seed, i_pose, pose), pose, noise)
             c["before_" + k0] = c.get("before_" + k0, 0) + 1
-        lines.append(_row(name, c))
+        lines.append(B.unbuilt_row(name, c, by_check=False))
         for key, v in c.items():
             total[key] = total.get(key, 0) + v
-    lines += [_row("**all**", total), ""]
+    lines += [B.unbuilt_row("**all**", total, by_check=False), ""]
     return "\n".join(lines)
-
-
-def _row(name: str, c: Dict[str, int]) -> str:
-    return (f"| {name} | {c.get('poses', 0)} | {c.get('unique_ok', 0) + c.get('unique_bounded', 0)} | "
-            f"{c.get('unique_wrong', 0)} | {c.get('ambiguous_with_truth', 0)} | {c.get('ambiguous_without_truth', 0)} | "
-            f"{c.get('none', 0)} | {c.get('before_unique_ok', 0) + c.get('before_unique_bounded', 0)} | "
-            f"{c.get('before_unique_wrong', 0)} |")
 
 
 def main(argv: List[str]) -> int:
