@@ -548,3 +548,53 @@ def test_the_compiled_hidden_test_is_the_numpy_one():
             assert fit_kernels.hidden(ibuf, box, float(top)) is ref, (trial, top)
             answers.add(ref)
     assert answers == {True, False}
+
+
+def test_the_compiled_shrink_is_opencvs():
+    """roi.shrink_rois with the compiled pixel work (fit_kernels.shrink) against ref_shrink, the
+    OpenCV compare, erode and findNonZero, on random label images of blobs and scattered pixels:
+    boxes at and across the grid's edges, padded grids, erosion radii from none to wider than the
+    box, views with no pixels: the same counts, margins and ROIs, dtype and all."""
+    pytest.importorskip("numba", reason="the compiled kernels need numba (the perf extra)")
+    from robot.localization import fit_kernels
+
+    if fit_kernels.backend() != "numba":
+        pytest.skip("the pass on the numpy code (ROBOT_KERNELS=numpy)")
+    rng = np.random.default_rng(31)
+    kept = empty = 0
+    for trial in range(300):
+        stride = int(rng.choice([1, 4, 8]))
+        h, w = int(rng.integers(5, 60)), int(rng.integers(5, 90))
+        grid = CameraGrid(ROBOT.cameras[0].intrinsics_from_fov(), w * stride, h * stride, stride)
+        pad = int(rng.integers(0, 4)) if trial % 3 else 0
+        n = int(rng.integers(1, 6))
+        label = np.full((h, w), -1, np.int32)
+        views = []
+        for k in range(n):
+            r0, c0 = int(rng.integers(0, h)), int(rng.integers(0, w))
+            r1, c1 = int(rng.integers(r0, h)), int(rng.integers(c0, w))
+            if trial % 4 == 0:  # solid rectangles, erosion's own shape, and scattered pixels
+                label[r0:r1 + 1, c0:c1 + 1] = k
+            sub = label[r0:r1 + 1, c0:c1 + 1]
+            sub[rng.random(sub.shape) < float(rng.uniform(0.3, 1.0))] = k
+            box = (c0, r0, c1, r1) if k % 5 != 4 else None  # a view without a box: the whole grid
+            views.append(PlaneView(k, f"p{k}", np.zeros(4), [], 1.0, box=box))
+        # Outside its box a view owns nothing (the rasterization draws it inside its box only).
+        for k, v in enumerate(views):
+            if v.box is not None:
+                c0, r0, c1, r1 = v.box
+                outside = np.ones((h, w), bool)
+                outside[r0:r1 + 1, c0:c1 + 1] = False
+                label[outside & (label == k)] = -1
+        radius_px = {k: float(rng.choice([0.0, 0.5, 3.0, 1.0 * stride, 2.5 * stride, 40.0 * stride])) for k in range(n)}
+        got = [PlaneView(v.plane_index, v.plane_id, v.pi_camera, [], 1.0, box=v.box) for v in views]
+        ref = [PlaneView(v.plane_index, v.plane_id, v.pi_camera, [], 1.0, box=v.box) for v in views]
+        margin = radius_px.__getitem__
+        shrink_rois(got, label, grid, lambda v, m=margin: m(v.plane_index), pad)
+        ref_shrink(ref, label, grid, lambda v, m=margin: m(v.plane_index), pad)
+        for g, r in zip(got, ref):
+            assert g.pixels == r.pixels and g.margin_px == r.margin_px, trial
+            assert same_array(g.roi_rows, r.roi_rows) and same_array(g.roi_cols, r.roi_cols), trial
+            kept += len(r.roi_rows)
+            empty += int(len(r.roi_rows) == 0 and r.pixels > 0)
+    assert kept > 5000 and empty > 10  # ROIs were kept, and some views were eroded away

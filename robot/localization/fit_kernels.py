@@ -168,7 +168,7 @@ def set_backend(name: Optional[str]) -> str:
 
 _KERNELS = ("_tail_kernel", "_one_surface_kernel", "_score_kernel", "_behind_kernel", "_gather_kernel",
             "_hypotheses_kernel", "_outline_kernel", "_views_kernel", "_zbuffer_kernel", "_hidden_kernel",
-            "_best_line_kernel")
+            "_shrink_kernel", "_best_line_kernel")
 _NUMPY_ERRORS = ("_pixels_kernel",)  # kernels compiled with numpy's floating-point error model
 
 
@@ -303,6 +303,8 @@ def _run_each_kernel() -> None:
     zbuffer(np.ones((3, 4), np.uint8), buf, np.full((3, 4), -1, np.int32), np.linspace(-0.5, 0.5, 4),
             np.linspace(-0.3, 0.3, 3), 0.1, 0.2, 0.5, 0, (0, 3, 0, 4), True)
     hidden(buf, (0, 3, 0, 4), 0.5)
+    for radius in (0, 1):
+        shrink(np.array([[0, 0, -1], [0, 1, 1]], np.int32), np.array([[0, 0, 1, 1], [1, 1, 2, 1]]), np.array([radius, 0]), 0)
     # The same square as a one-plane map (a wall 2 m ahead, facing the camera), seen from the origin.
     frustum = np.array([[0.0, 0.0, 1.0, -0.01], [1.0, 0.0, 0.0, 0.5]])
     cells = (-1.0, -1.0, 2.0, 1, 1, np.array([0, 1], np.int64), np.zeros(1, np.int64))
@@ -470,6 +472,19 @@ def hidden(ibuf: np.ndarray, box: Tuple[int, int, int, int], top: float) -> bool
     c1, the ends excluded), looking no further than the first pixel that does not."""
     r0, r1, c0, c1 = box
     return bool(_nb["_hidden_kernel"](ibuf, int(r0), int(r1), int(c0), int(c1), float(top)))
+
+
+def shrink(label: np.ndarray, boxes: np.ndarray, radii: np.ndarray, pad: int
+           ) -> Tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``roi.shrink_rois``' pixel work for every view of a label image in one call: view k (its
+    label) owns the pixels labelled k in its grid box ``boxes[k]`` (c0, r0, c1, r1, inclusive);
+    its pixel count is taken on the inner grid (``pad`` pixels in from every edge), and its ROI
+    is what a rectangular erosion of radius ``radii[k]`` (grid pixels; zero beyond the box, as
+    ``cv2.erode`` with a constant border of 0) leaves there, row by row, in inner-grid
+    coordinates. Returns (rows, cols, offsets (n + 1), pixels (n)): view k's ROI is
+    ``rows[offsets[k]:offsets[k + 1]]`` and the same of ``cols`` (int32, as cv2.findNonZero)."""
+    return _nb["_shrink_kernel"](label, np.ascontiguousarray(boxes, np.int64), np.ascontiguousarray(radii, np.int64),
+                                 int(pad))
 
 
 def best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:
@@ -1295,6 +1310,74 @@ def _hidden_kernel(ibuf, r0, r1, c0, c1, top):  # pragma: no cover (compiled)
             if ibuf[r, col] < top:
                 return False
     return True
+
+
+def _shrink_kernel(label, boxes, radii, pad):  # pragma: no cover (compiled)
+    """shrink's work (see :func:`shrink`): per view, count its pixels on the inner grid, then keep
+    those whose whole (2 r + 1)^2 window lies in its box and is its own. The window test runs as
+    two passes of run lengths: along each row, how many of its own pixels end at a column; then,
+    of the pixels whose row window is whole, how many end at a row down each column."""
+    H, W = label.shape
+    n = boxes.shape[0]
+    cap = 0
+    for k in range(n):
+        i0, j0 = max(boxes[k, 1], pad), max(boxes[k, 0], pad)
+        i1, j1 = min(boxes[k, 3], H - 1 - pad), min(boxes[k, 2], W - 1 - pad)
+        if i1 >= i0 and j1 >= j0:
+            cap += (i1 - i0 + 1) * (j1 - j0 + 1)
+    rows = np.empty(cap, np.int32)
+    cols = np.empty(cap, np.int32)
+    offsets = np.zeros(n + 1, np.int64)
+    pixels = np.zeros(n, np.int64)
+    pos = 0
+    for k in range(n):
+        offsets[k] = pos
+        c0, r0, c1, r1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
+        i0, j0, i1, j1 = max(r0, pad), max(c0, pad), min(r1, H - 1 - pad), min(c1, W - 1 - pad)
+        if i1 < i0 or j1 < j0:
+            continue
+        cnt = 0
+        for r in range(i0, i1 + 1):
+            for c in range(j0, j1 + 1):
+                if label[r, c] == k:
+                    cnt += 1
+        pixels[k] = cnt
+        if cnt == 0:
+            continue
+        rad = radii[k]
+        if rad <= 0:
+            for r in range(i0, i1 + 1):
+                for c in range(j0, j1 + 1):
+                    if label[r, c] == k:
+                        rows[pos] = r - pad
+                        cols[pos] = c - pad
+                        pos += 1
+            continue
+        span = 2 * rad + 1
+        # Rows whose pixels' windows can reach the inner part, within the box.
+        a0, a1 = max(r0, i0 - rad), min(r1, i1 + rad)
+        whole_row = np.zeros((a1 - a0 + 1, j1 - j0 + 1), np.bool_)
+        for r in range(a0, a1 + 1):
+            run = 0
+            for c in range(c0, min(c1, j1 + rad) + 1):
+                run = run + 1 if label[r, c] == k else 0
+                j = c - rad  # the column whose row window ends here
+                if j >= j0 and j - rad >= c0 and run >= span:
+                    whole_row[r - a0, j - j0] = True
+        vrun = np.zeros(j1 - j0 + 1, np.int64)
+        for r in range(a0, a1 + 1):
+            for c in range(j0, j1 + 1):
+                vrun[c - j0] = vrun[c - j0] + 1 if whole_row[r - a0, c - j0] else 0
+            i = r - rad  # the row whose column window ends here
+            if i < i0 or i > i1 or i - rad < r0:
+                continue
+            for c in range(j0, j1 + 1):
+                if vrun[c - j0] >= span:
+                    rows[pos] = i - pad
+                    cols[pos] = c - pad
+                    pos += 1
+    offsets[n] = pos
+    return rows[:pos], cols[:pos], offsets, pixels
 
 
 def _wall_depth(table, k, x, y):  # pragma: no cover (compiled)
