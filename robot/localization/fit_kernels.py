@@ -1336,14 +1336,6 @@ def _shrink_kernel(label, boxes, radii, pad):  # pragma: no cover (compiled)
         i0, j0, i1, j1 = max(r0, pad), max(c0, pad), min(r1, H - 1 - pad), min(c1, W - 1 - pad)
         if i1 < i0 or j1 < j0:
             continue
-        cnt = 0
-        for r in range(i0, i1 + 1):
-            for c in range(j0, j1 + 1):
-                if label[r, c] == k:
-                    cnt += 1
-        pixels[k] = cnt
-        if cnt == 0:
-            continue
         rad = radii[k]
         if rad <= 0:
             for r in range(i0, i1 + 1):
@@ -1352,24 +1344,36 @@ def _shrink_kernel(label, boxes, radii, pad):  # pragma: no cover (compiled)
                         rows[pos] = r - pad
                         cols[pos] = c - pad
                         pos += 1
+            pixels[k] = pos - offsets[k]
             continue
         span = 2 * rad + 1
-        # Rows whose pixels' windows can reach the inner part, within the box.
+        # Rows whose pixels' windows can reach the inner part, within the box; the pixel count
+        # on the way (the inner part lies within the rows and columns this pass reads).
         a0, a1 = max(r0, i0 - rad), min(r1, i1 + rad)
         whole_row = np.zeros((a1 - a0 + 1, j1 - j0 + 1), np.bool_)
+        cnt = 0
         for r in range(a0, a1 + 1):
+            inner_row = i0 <= r <= i1
             run = 0
             for c in range(c0, min(c1, j1 + rad) + 1):
-                run = run + 1 if label[r, c] == k else 0
+                if label[r, c] == k:
+                    run += 1
+                    if inner_row and j0 <= c <= j1:
+                        cnt += 1
+                else:
+                    run = 0
                 j = c - rad  # the column whose row window ends here
-                if j >= j0 and j - rad >= c0 and run >= span:
+                if j >= j0 and run >= span:
                     whole_row[r - a0, j - j0] = True
+        pixels[k] = cnt
+        if cnt == 0:
+            continue
         vrun = np.zeros(j1 - j0 + 1, np.int64)
         for r in range(a0, a1 + 1):
             for c in range(j0, j1 + 1):
                 vrun[c - j0] = vrun[c - j0] + 1 if whole_row[r - a0, c - j0] else 0
             i = r - rad  # the row whose column window ends here
-            if i < i0 or i > i1 or i - rad < r0:
+            if i < i0 or i > i1:
                 continue
             for c in range(j0, j1 + 1):
                 if vrun[c - j0] >= span:
