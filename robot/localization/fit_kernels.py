@@ -483,8 +483,8 @@ def shrink(label: np.ndarray, boxes: np.ndarray, radii: np.ndarray, pad: int
     ``cv2.erode`` with a constant border of 0) leaves there, row by row, in inner-grid
     coordinates. Returns (rows, cols, offsets (n + 1), pixels (n)): view k's ROI is
     ``rows[offsets[k]:offsets[k + 1]]`` and the same of ``cols`` (int32, as cv2.findNonZero)."""
-    return _nb["_shrink_kernel"](label, np.ascontiguousarray(boxes, np.int64), np.ascontiguousarray(radii, np.int64),
-                                 int(pad))
+    return _nb["_shrink_kernel"](np.ascontiguousarray(label, np.int32), np.ascontiguousarray(boxes, np.int64),
+                                 np.ascontiguousarray(radii, np.int64), int(pad))
 
 
 def best_line(pts: np.ndarray, pairs: np.ndarray, tol: np.ndarray) -> Tuple[int, Optional[np.ndarray]]:

@@ -612,9 +612,11 @@ def _shrink_compiled(views: List[PlaneView], label: np.ndarray, grid: CameraGrid
     radii = np.zeros(n, np.int64)
     margins: List[Optional[float]] = [None] * n
     for k, view in enumerate(views):
-        box = view.box if view.box is not None else (0, 0, W - 1, H - 1)
-        boxes[k] = box
-        c0, r0, c1, r1 = box
+        c0, r0, c1, r1 = view.box if view.box is not None else (0, 0, W - 1, H - 1)
+        # Boxes come clipped to the grid (_grid_box); clipped again here because the kernel reads
+        # without bounds checks, and a box past the grid would read outside the label image.
+        c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, W - 1), min(r1, H - 1)
+        boxes[k] = (c0, r0, c1, r1)
         # The margin only where the view has a part on the inner grid (as the plain loop asks it).
         if min(r1, H - 1 - pad) >= max(r0, pad) and min(c1, W - 1 - pad) >= max(c0, pad):
             margin = margins[k] = float(margin_for(view))
