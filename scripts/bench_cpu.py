@@ -201,6 +201,21 @@ def machine_line(m: Dict[str, float]) -> str:
             f"x{m['python_factor']:.2f} (Python) the reference's time.")
 
 
+def machine_speed(reps: int) -> Dict[str, float]:
+    """This process's machine factor, for scaling another interpreter's figures to the Nano: the
+    reference's workloads ran under Python 3.11, and a Python 3.8 subprocess's own pure-Python
+    workload also takes 3.8's slower interpreter (about 1.6 times 3.11's on the same machine)
+    out of its figures, which the Nano, running 3.8, does pay. Timed just before that subprocess,
+    to catch the machine in the same state."""
+    return machine_factor(reps)
+
+
+def speed_line(m: Dict[str, float]) -> str:
+    return (f"Nano estimates below scale by this machine's speed as Python {platform.python_version()} "
+            f"measured it just before (x{m['numpy_factor']:.2f} numpy, x{m['python_factor']:.2f} Python), not by "
+            "this interpreter's own factor, which holds its slower interpreter too.")
+
+
 def nano(ms: float, m: Dict[str, float]) -> str:
     """A figure measured here as the Nano's, at factors 5 and 8 over the reference machine."""
     base = ms / max(m["factor"], 1e-9)
@@ -1267,12 +1282,17 @@ def _f(v: Any, fmt: str = "{:.2f}") -> str:
     return "n/a" if v is None or (isinstance(v, float) and not math.isfinite(v)) else fmt.format(v)
 
 
-def report_localizer(r: Dict[str, Any], m_here: Dict[str, float]) -> List[str]:
+def report_localizer(r: Dict[str, Any], m_here: Dict[str, float], speed: Optional[Dict[str, float]] = None
+                     ) -> List[str]:
+    """The step table of a localizer worker's result; ``speed``: the machine factor its Nano row
+    scales by when not the worker's own (see :func:`speed_line`)."""
     if "error" in r:
         return [f"_{r['error']}_", ""]
     m = r["machine"]
     lines = [f"Python {r['python']}, numpy {r['numpy']}, load average {r['load'][0]:.1f} -> {r['load'][1]:.1f}. "
-             f"{machine_line(m)}", ""]
+             f"{machine_line(m)}" + (f" {speed_line(speed)}" if speed else ""), ""]
+    if speed:
+        m = speed
     head = "| step (exclusive CPU, median ms) | " + " | ".join(f"{c['frames']} frame{'s' if c['frames'] > 1 else ''}, "
                                                                  f"{c['case'].split(':')[0]}" for c in r["cases"]) + " |"
     lines += [head, "|---|" + "---|" * len(r["cases"])]
@@ -1324,12 +1344,17 @@ def report_localizer(r: Dict[str, Any], m_here: Dict[str, float]) -> List[str]:
     return lines
 
 
-def report_controller(r: Dict[str, Any]) -> Tuple[List[str], Optional[Dict[str, float]]]:
+def report_controller(r: Dict[str, Any], speed: Optional[Dict[str, float]] = None
+                      ) -> Tuple[List[str], Optional[Dict[str, float]]]:
+    """The tables of a controller worker's result, and its per-event costs with the machine factor
+    the Nano budget scales by (``speed`` when given, else the worker's own)."""
     if "error" in r:
         return [f"_{r['error']}_", ""], None
     m = r["machine"]
     lines = [f"Python {r['python']}, numpy {r['numpy']}, load average {r['load'][0]:.1f} -> {r['load'][1]:.1f}. "
-             f"{machine_line(m)}", ""]
+             f"{machine_line(m)}" + (f" {speed_line(speed)}" if speed else ""), ""]
+    if speed:
+        m = speed
     if r.get("errors"):
         lines += ["Runs that failed: " + "; ".join(r["errors"]), ""]
     a, b = r.get("30"), r.get("10")
@@ -1543,7 +1568,8 @@ def run(quick: bool = False) -> str:
         out += ["not present (no `.venv38` with Python 3.8: `make .venv38/.installed VENV=.venv38 "
                 "PYTHON=python3.8`)", ""]
     else:
-        out += report_localizer(run_worker(py38, "localizer", quick), m_here)
+        speed = machine_speed(5 if quick else 15)
+        out += report_localizer(run_worker(py38, "localizer", quick), m_here, speed)
 
     out += [f"### The floor: what the per-wall work costs at least ({here})", ""]
     try:
@@ -1570,11 +1596,12 @@ def run(quick: bool = False) -> str:
         if quick and python != sys.executable:
             out += ["skipped in quick mode (the same worker as above, under Python 3.8)", ""]
             continue
+        speed = None if python == sys.executable else machine_speed(5 if quick else 15)
         ctl = run_worker(python, "controller", quick)
         mem = run_worker(python, "memory_numpy", quick, ROBOT_KERNELS="numpy")
         if not ctl.get("alloc") and mem.get("alloc"):
             ctl["alloc"], ctl["alloc_numpy"] = mem["alloc"], True
-        lines, fit = report_controller(ctl)
+        lines, fit = report_controller(ctl, speed)
         out += lines
         out += report_memory_numpy(mem)
         if not quick:
