@@ -1559,7 +1559,12 @@ def run(quick: bool = False) -> str:
             f"{len(frame_sets(2 if quick else 6))} poses in the paper arena; tracking = the EKF's prior (1 cm / 0.5 deg "
             "off, std 2 cm / 1 deg), cold = 0.1 m / 10 deg off with the default coarse std.", ""]
     out += [f"#### {here}", ""]
+    # This machine's speed, read with the reference's interpreter at several times in the run: the
+    # Nano budget scales by their median, so that one reading in a busy spell does not move it.
+    readings = [m_here]
     steps_here = run_worker(sys.executable, "localizer", quick)
+    if "machine" in steps_here:
+        readings.append(steps_here["machine"])
     out += report_localizer(steps_here, m_here)
     out += ["#### Python 3.8", ""]
     if sys.version_info[:2] == (3, 8):
@@ -1569,6 +1574,7 @@ def run(quick: bool = False) -> str:
                 "PYTHON=python3.8`)", ""]
     else:
         speed = machine_speed(5 if quick else 15)
+        readings.append(speed)
         out += report_localizer(run_worker(py38, "localizer", quick), m_here, speed)
 
     out += [f"### The floor: what the per-wall work costs at least ({here})", ""]
@@ -1597,7 +1603,11 @@ def run(quick: bool = False) -> str:
             out += ["skipped in quick mode (the same worker as above, under Python 3.8)", ""]
             continue
         speed = None if python == sys.executable else machine_speed(5 if quick else 15)
+        if speed is not None:
+            readings.append(speed)
         ctl = run_worker(python, "controller", quick)
+        if python == sys.executable and "machine" in ctl:
+            readings.append(ctl["machine"])
         mem = run_worker(python, "memory_numpy", quick, ROBOT_KERNELS="numpy")
         if not ctl.get("alloc") and mem.get("alloc"):
             ctl["alloc"], ctl["alloc_numpy"] = mem["alloc"], True
@@ -1611,8 +1621,14 @@ def run(quick: bool = False) -> str:
     out += ["### Nano budget", ""]
     if not fits:
         out += ["_no controller figures to scale_", ""]
+    readings.append(machine_factor(5 if quick else 15))
+    run_factor = median([r["factor"] for r in readings])
+    out += [f"Scaled by this machine's median factor over the run, x{run_factor:.2f} ({len(readings)} readings with "
+            f"Python {platform.python_version()}, from x{min(r['factor'] for r in readings):.2f} to "
+            f"x{max(r['factor'] for r in readings):.2f}; each is the geometric mean of its numpy and pure-Python "
+            "factors), not by each table's own.", ""]
     for label, fit in fits:
-        out += [f"#### From {label}", ""] + budget_lines(fit)
+        out += [f"#### From {label}", ""] + budget_lines(dict(fit, factor=run_factor))
 
     out += ["### What importing the controller loads", ""]
     mods = IMPORTS[-3:] if quick else IMPORTS
