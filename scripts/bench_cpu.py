@@ -201,16 +201,11 @@ def machine_line(m: Dict[str, float]) -> str:
             f"x{m['python_factor']:.2f} (Python) the reference's time.")
 
 
-def machine_speed(reps: int) -> Dict[str, float]:
-    """This process's machine factor, for scaling another interpreter's figures to the Nano: the
-    reference's workloads ran under Python 3.11, and a Python 3.8 subprocess's own pure-Python
-    workload also takes 3.8's slower interpreter (about 1.6 times 3.11's on the same machine)
-    out of its figures, which the Nano, running 3.8, does pay. Timed just before that subprocess,
-    to catch the machine in the same state."""
-    return machine_factor(reps)
-
-
 def speed_line(m: Dict[str, float]) -> str:
+    """A Python 3.8 table's note: its Nano row scales by ``m``, this process's machine factor timed
+    just before the 3.8 subprocess. The reference's workloads ran under Python 3.11, and the
+    subprocess's own pure-Python workload also holds 3.8's slower interpreter (about 1.6 times
+    3.11's on the same machine), which the Nano, running 3.8, does pay."""
     return (f"Nano estimates below scale by this machine's speed as Python {platform.python_version()} "
             f"measured it just before (x{m['numpy_factor']:.2f} numpy, x{m['python_factor']:.2f} Python), not by "
             "this interpreter's own factor, which holds its slower interpreter too.")
@@ -1344,17 +1339,14 @@ def report_localizer(r: Dict[str, Any], m_here: Dict[str, float], speed: Optiona
     return lines
 
 
-def report_controller(r: Dict[str, Any], speed: Optional[Dict[str, float]] = None
-                      ) -> Tuple[List[str], Optional[Dict[str, float]]]:
-    """The tables of a controller worker's result, and its per-event costs with the machine factor
-    the Nano budget scales by (``speed`` when given, else the worker's own)."""
+def report_controller(r: Dict[str, Any]) -> Tuple[List[str], Optional[Dict[str, float]]]:
+    """The tables of a controller worker's result, and its per-event costs (the Nano budget scales
+    them by the run's median machine factor, see ``run``)."""
     if "error" in r:
         return [f"_{r['error']}_", ""], None
     m = r["machine"]
     lines = [f"Python {r['python']}, numpy {r['numpy']}, load average {r['load'][0]:.1f} -> {r['load'][1]:.1f}. "
-             f"{machine_line(m)}" + (f" {speed_line(speed)}" if speed else ""), ""]
-    if speed:
-        m = speed
+             f"{machine_line(m)}", ""]
     if r.get("errors"):
         lines += ["Runs that failed: " + "; ".join(r["errors"]), ""]
     a, b = r.get("30"), r.get("10")
@@ -1411,7 +1403,7 @@ def report_controller(r: Dict[str, Any], speed: Optional[Dict[str, float]] = Non
     lines.append("")
     fit = None
     if r.get("model"):
-        fit = dict(r["model"], factor=m["factor"])
+        fit = dict(r["model"])
     return lines, fit
 
 
@@ -1573,7 +1565,7 @@ def run(quick: bool = False) -> str:
         out += ["not present (no `.venv38` with Python 3.8: `make .venv38/.installed VENV=.venv38 "
                 "PYTHON=python3.8`)", ""]
     else:
-        speed = machine_speed(5 if quick else 15)
+        speed = machine_factor(5 if quick else 15)
         readings.append(speed)
         out += report_localizer(run_worker(py38, "localizer", quick), m_here, speed)
 
@@ -1602,16 +1594,15 @@ def run(quick: bool = False) -> str:
         if quick and python != sys.executable:
             out += ["skipped in quick mode (the same worker as above, under Python 3.8)", ""]
             continue
-        speed = None if python == sys.executable else machine_speed(5 if quick else 15)
-        if speed is not None:
-            readings.append(speed)
+        if python != sys.executable:  # (the machine's speed as the reference's interpreter reads it, for the budget)
+            readings.append(machine_factor(5 if quick else 15))
         ctl = run_worker(python, "controller", quick)
         if python == sys.executable and "machine" in ctl:
             readings.append(ctl["machine"])
         mem = run_worker(python, "memory_numpy", quick, ROBOT_KERNELS="numpy")
         if not ctl.get("alloc") and mem.get("alloc"):
             ctl["alloc"], ctl["alloc_numpy"] = mem["alloc"], True
-        lines, fit = report_controller(ctl, speed)
+        lines, fit = report_controller(ctl)
         out += lines
         out += report_memory_numpy(mem)
         if not quick:
