@@ -16,6 +16,7 @@ from robot.control.core import ControllerCore
 from robot.control.path_file import PathPlan, StartPose, Waypoint
 from robot.control.recovery import AMBIGUOUS, CONFIRMING, MOVING, RELOCALIZING, TRACKING, TURNING, RecoverySupervisor
 from robot.maps.plane_map import load_plane_map
+from robot.sim.faults import FaultPlan
 from robot.sim.runner import RunSettings, _PathRun
 
 ROBOT = load_robot_config("config/robot.yaml")
@@ -113,6 +114,57 @@ def test_an_obstacle_inside_the_turning_circle_prevents_the_turn():
     rec = run.core.recovery
     assert rec.state in (AMBIGUOUS, RELOCALIZING) and "in-place turn was stopped" in rec.reason, rec.reason
     assert run.core.counters.get("safety_stop", 0) >= 1
+
+
+class _AskAgainAt(_Run):
+    """The operator's ``recover`` (robot.app.operator) at a given time of the simulated clock."""
+
+    def __init__(self, *a, ask_at=None, **kw):
+        super().__init__(*a, **kw)
+        self.ask_at = ask_at
+
+    def _control(self, t, payload):
+        if self.ask_at is not None and t >= self.ask_at:
+            self.ask_at = None
+            self.core.recovery.force(t, "an operator asked to relocalize again")
+        return super()._control(t, payload)
+
+
+def test_a_host_stall_stops_the_move_for_good_until_an_operator_asks_again(twin_rooms):
+    plane_map, pose = twin_rooms
+    plan = PathPlan((Waypoint(pose[0], pose[1], pose[2], speed=0.2, tolerance=0.01),), StartPose(*pose))
+
+    def drive(stall_at, ask_at, max_time):
+        settings = RunSettings(vision=True, max_time=max_time, known_start=False,
+                               faults=FaultPlan(host_stalls=((stall_at, 0.5),)))
+        run = _AskAgainAt(MOVING_ROBOT, plane_map, plan, settings, ask_at=ask_at)
+        run.drive()
+        return run, run.result(0.0)
+
+    run0, _ = drive(1e9, None, 60.0)
+    t_move = next(t for t, st in run0.recovery_log if st == MOVING)
+    t_stall = t_move + 1.0  # turning to face the way, or on the way
+    # Left alone: the stall stopped the move, the verdict stands, and the robot never moves again.
+    run, res = drive(t_stall, None, t_stall + 20.0)
+    rec = run.core.recovery
+    assert rec.state == AMBIGUOUS and "the move was stopped: fault: control loop stalled" in rec.turn_note, rec.turn_note
+    assert [s for _, s in run.recovery_log].count(MOVING) == 1 and not res.finished
+    t_rest = t_stall + 2.0  # the board's watchdog stopped the wheels during the stall
+    assert all(c[1:4] == (0.0, 0.0, 0.0) for c in run.commands if c[0] >= t_stall)
+    # It kept looking, and from one place: the truth at each later relocalization and at the end.
+    rest = [truth for t, truth, *_ in run.at_relocalization if t >= t_rest] + [run.world.truth]
+    assert len(rest) >= 3 and max(_moved(p, rest[0]) for p in rest) < 1e-4
+    assert all(v == "ambiguous" for t, v in run.relocalizations if t >= t_rest)
+    # The operator asks again: a new sequence plans a move from where the robot stands, drives it
+    # (the stall's fault, noted before this move began, does not stop it), and the verdict is unique.
+    run, res = drive(t_stall, t_stall + 10.0, t_stall + 70.0)
+    states = [s for _, s in run.recovery_log]
+    assert states.count(MOVING) == 2 and CONFIRMING in states[states.index(MOVING, states.index(MOVING) + 1):], states
+    verdict, hyps = run.at_relocalization[-1][3], run.at_relocalization[-1][4]
+    truth = run.at_relocalization[-1][1]
+    assert verdict == "unique" and _moved(hyps[0], truth) < 0.01
+    assert res.finished, res.reason
+    assert max(r.error for r in res.targets) < 0.01
 
 
 # -- the state machine alone ------------------------------------------------------------------------

@@ -146,6 +146,7 @@ COMMANDS: Dict[str, CommandSpec] = {
     "abort": CommandSpec({"reason": (_string(MAX_REASON_CHARS), False)}, _never, "brake and end the mission"),
     "relocalize": CommandSpec({"apply": (_boolean, False), "region": (_region, False)},
                               lambda a: a.get("apply", True), "global relocalization from the newest frames"),
+    "recover": CommandSpec({}, _always, "restart recovery: relocalize, then turn and move as the config allows"),
     "limits": CommandSpec({"speed": (_number(0.0, 2.0, lo_open=True), False), "reset": (_boolean, False)},
                           lambda a: "speed" in a or bool(a.get("reset")), "show or lower the speed limit"),
     "watch": CommandSpec({"period": (_number(0.02, 10.0), False)}, _never, "stream the state"),

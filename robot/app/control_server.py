@@ -301,6 +301,8 @@ class ControlServer:
             return op.abort(a.get("reason", f"aborted by {who}"))
         if cmd == "relocalize":
             return await op.relocalize(a.get("apply", True), a.get("region"))
+        if cmd == "recover":
+            return op.recover(f"{who} asked to relocalize again")
         if cmd == "limits":
             return op.limits(a.get("speed"), a.get("reset", False))
         raise proto.ProtocolError(proto.UNKNOWN_COMMAND, f"unknown command {cmd!r}")  # COMMANDS and here disagree

@@ -31,7 +31,7 @@ import signal
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List, Optional, Sequence, Tuple, Union
+from typing import Callable, Dict, List, Optional, Sequence, Tuple, TypeVar, Union
 
 import numpy as np
 
@@ -60,6 +60,7 @@ from robot.recording.live_view import LiveView, NullLiveView
 from robot.recording.recorder import BackgroundRecorder, NullRecorder, Recorder
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 _STREAMING = CameraState.STREAMING.value  # (an enum's .value is a descriptor call: this is read per frame)
 RECOVERY_POLL = 0.2  # s between looks at whether the recovery supervisor wants a relocalization
@@ -204,6 +205,25 @@ class RobotApp:
         self._record("status", t, functools.partial(channels.set_pose_message, t, pose[0], pose[1], pose[2], cov, source,
                                                     hidden_walls))
         log.info("pose set to (%.3f, %.3f, %.1f deg) by %s", pose[0], pose[1], math.degrees(pose[2]), source)
+
+    def restart_recovery(self, why: str) -> None:
+        """Start the recovery sequence afresh (operator, fleet): relocalize, then turn and move as
+        the config allows, even where a stopped turn or move had ended the last one for good."""
+        t = time.monotonic()
+        self.core.recovery.force(t, why)
+        self._record("status", t, functools.partial(channels.recovery_request_message, t, why))
+        log.warning("relocalizing: %s", why)
+
+    def call_on_loop(self, fn: Callable[[], T]) -> concurrent.futures.Future:
+        """Call ``fn`` on the app's event loop from another thread (a program embedding the app, a
+        test) and get its result or exception in the future: the core is not thread-safe."""
+        if self._loop is None:
+            raise RuntimeError("the app is not running: nothing to call on")
+
+        async def call() -> T:
+            return fn()
+
+        return asyncio.run_coroutine_threadsafe(call(), self._loop)
 
     def stall_control_loop(self, seconds: float) -> None:
         """Test hook: make the control tick miss its ticks (a hung loop) for ``seconds``."""

@@ -14,6 +14,11 @@ turn their requests into these calls, so both refuse the same things for the sam
 - ``pause`` / ``resume`` / ``abort``; ``limits``: lower the speed limit (never above the config);
 - ``relocalize``: the global search (``robot.localization.relocalize``) on the newest frames, in
   a worker thread; a unique answer becomes the pose, an ambiguous one is only reported.
+- ``recover``: start the recovery supervisor's sequence afresh (relocalize, then the in-place
+  turn and the move to tell places apart, as the config allows). A turn or move that something
+  stopped (the protective stop, a fault) ends its sequence for good, so that a robot stopped by
+  something beside it never starts moving again on its own; this is how a person who has looked
+  lets it try again. Refused while a mission drives the robot, or with recovery disabled.
 
 Everything here runs on the app's event loop, like the core itself; the localizer work runs on
 this module's own worker thread with its own ``Localizer``, so it never shares state with the
@@ -137,6 +142,8 @@ class Operator:
                                    "watchdog_tripped": board.watchdog_tripped})
         out["battery"] = {"voltage": board.battery_v if board is not None else None}
         out["cameras"] = dict(app.camera_states)
+        rec = core.recovery
+        out["recovery"] = {"state": rec.state, "reason": rec.reason, "hypotheses": rec.hypotheses}
         return json_safe(out)
 
     def moving(self) -> bool:
@@ -302,6 +309,18 @@ class Operator:
             applied = True
         return {"verdict": res.verdict, "reason": res.reason, "applied": applied, "ms": res.ms,
                 "walls_seen": res.walls_seen, "hypotheses": [h.to_json() for h in res.hypotheses[:5]]}
+
+    def recover(self, why: str = "an operator asked to relocalize again") -> Dict[str, Any]:
+        app = self.app
+        if not app.robot.recovery.enabled:
+            raise CommandRefused("recovery is disabled in the config (recovery.enabled: false)")
+        if app.core.recovery.turning or app.core.recovery.moving:
+            raise CommandRefused(f"a recovery sequence is driving already ({app.core.recovery.reason})")
+        if self.moving():
+            raise CommandRefused("the robot is moving: pause or abort first, and let it brake "
+                                 "(relocalization needs it standing still)")
+        app.restart_recovery(why)
+        return app.core.recovery.to_json()
 
     # -- worker thread --------------------------------------------------------------------------
 

@@ -1,4 +1,4 @@
-"""``robotctl status | set-pose | go | goto | pause | resume | abort | relocalize-live | limits``: talk to
+"""``robotctl status | set-pose | go | goto | pause | resume | abort | relocalize-live | recover | limits``: talk to
 the running controller over its control socket (docs/control-api.md).
 
 Each prints the controller's answer (``--json``: the reply's result as one JSON line) and exits
@@ -56,6 +56,8 @@ def register(sub) -> None:
     p.add_argument("--no-apply", action="store_true", help="only report; do not set the pose even when unique")
     p.add_argument("--region", nargs=4, type=float, metavar=("X0", "Y0", "X1", "Y1"),
                    help="only consider poses inside this box of the map (m)")
+    add("recover", "restart recovery: relocalize, then turn in place and move to tell places apart as the "
+        "config allows (after a stopped turn or move, the robot tries again only when asked)", cmd_recover)
     p = add("limits", "show or lower the speed limit (never above the configured control.max_speed)", cmd_limits)
     g = p.add_mutually_exclusive_group()
     g.add_argument("--speed", type=float_in(0.0, 2.0, "m/s", lo_open=True), help="new cruise speed limit (m/s)")
@@ -84,6 +86,10 @@ def cmd_status(args) -> int:
         print("pose      none (set-pose or relocalize-live)")
     q = s.get("quality", {})
     print(f"quality   {q.get('state')}" + (f" ({q.get('reason')})" if q.get("reason") else ""))
+    rec = s.get("recovery") or {}
+    if rec.get("state") not in (None, "tracking"):
+        print(f"recovery  {rec['state']}" + (f" ({rec.get('reason')})" if rec.get("reason") else "")
+              + (f"; {len(rec['hypotheses'])} hypotheses" if rec.get("hypotheses") else ""))
     if s.get("protection_levels"):
         print("protection " + ", ".join(f"{k} {v}" for k, v in s["protection_levels"].items()))
     m = s.get("mission", {})
@@ -164,6 +170,13 @@ def cmd_relocalize(args) -> int:
             print(f"  {i + 1}. x={h['x']:.4f} y={h['y']:.4f} phi={h['phi']:.4f} rad  score {h['score']:.1f}  "
                   f"support {h['support']:.0%}")
     return 0 if r.get("verdict") != "none" else 1
+
+
+def cmd_recover(args) -> int:
+    r = _call(args, "recover", {})
+    if not args.json:
+        print(f"recovery: {r['state']}" + (f" ({r['reason']})" if r.get("reason") else ""))
+    return 0
 
 
 def cmd_limits(args) -> int:

@@ -130,12 +130,14 @@ class ControllerCore:
         c = robot.control
         self._turn_lim = AxisLimiter(min(robot.recovery.turn_rate, c.max_yaw_rate), c.max_yaw_accel, c.max_yaw_jerk)
         self._turn_t: Optional[float] = None
+        self._turn_t0 = -math.inf  # when the present turn began: only a fault since then stops it
         # The relocalization's move (a turn to face the way, then straight ahead): its own limiters
         # (speed along the move, yaw rate), the odometry pose (view 0's frame) where it started,
         # and its direction in the robot frame.
         self._move_lim = AxisLimiter(min(robot.recovery.move_speed, c.max_speed), c.max_accel, c.max_jerk)
         self._move_yaw_lim = AxisLimiter(min(robot.recovery.turn_rate, c.max_yaw_rate), c.max_yaw_accel, c.max_yaw_jerk)
         self._move_t: Optional[float] = None
+        self._move_t0 = -math.inf  # when the present move began: only a fault since then stops it
         self._move_start: Optional[Tuple[float, float, float]] = None
         self._move_serial = 0  # recovery.move_serial of the move _move_start belongs to
         self._move_yaw0 = 0.0  # unwrapped odometry heading where it started
@@ -553,9 +555,14 @@ class ControllerCore:
             return None
         return limit_floats(w, self.robot.chassis.max_wheel_speed)[0]  # type: ignore[return-value]
 
-    def _turn_blocker(self, t: float) -> str:
-        """Why the in-place turn may not go on now ("" when it may)."""
-        if self.health.holding:
+    def _turn_blocker(self, t: float, since: float) -> str:
+        """Why the recovery's turn or move that began at ``since`` may not go on now ("" when it may).
+
+        A fault noted before it began does not stop it: the fault stopped the motion it happened
+        in, and the health hold that follows waits for a confirmed pose, which only the
+        relocalization this motion serves can give. The motion starts from rest and needs the
+        link and fresh odometry like any other."""
+        if self.health.holding and self.health.t_fault >= since:
             return f"fault: {self.health.fault}"
         if not self.health.chassis_ok:
             return self._chassis_reason or "chassis link down"
@@ -565,11 +572,11 @@ class ControllerCore:
             return "the robot is teleoperated: it does not move by itself"
         return ""
 
-    def _stop_if_blocked(self, t: float, stop, *limiters: AxisLimiter) -> None:
+    def _stop_if_blocked(self, t: float, since: float, stop, *limiters: AxisLimiter) -> None:
         """End the recovery's turn or move (``stop``) when it may not go on (``_turn_blocker``);
         where the board has stopped the wheels itself there is nothing to brake: the limiters
         start from rest."""
-        why = self._turn_blocker(t)
+        why = self._turn_blocker(t, since)
         if why:
             stop(t, why)
             if self.health.holding or not self.health.chassis_ok:
@@ -603,9 +610,9 @@ class ControllerCore:
             # A new move: from where the robot stands now (the one before may have ended, been
             # relocalized and replanned before a tick saw the robot still and forgot it).
             self._move_start, self._move_yaw0, self._move_facing = self._turn_rel, self._turn_yaw, False
-            self._move_serial, self._move_dir = rec.move_serial, (1.0, 0.0)
+            self._move_serial, self._move_dir, self._move_t0 = rec.move_serial, (1.0, 0.0), t
         if rec.moving:
-            self._stop_if_blocked(t, rec.move_stopped, lim, yaw_lim)
+            self._stop_if_blocked(t, self._move_t0, rec.move_stopped, lim, yaw_lim)
         wz_target, v_target, dist = 0.0, 0.0, math.inf
         if rec.moving and self._move_start is not None:
             gx, gy, gphi = rec.move_goal
@@ -659,10 +666,12 @@ class ControllerCore:
             self._turn_t = None
             return None
         c = self.robot.control
+        if self._turn_t is None:
+            self._turn_t0 = t
         dt = 1.0 / c.rate if self._turn_t is None else min(max(t - self._turn_t, 0.0), c.max_dt)
         self._turn_t = t
         if rec.turning:
-            self._stop_if_blocked(t, rec.turn_stopped, lim)
+            self._stop_if_blocked(t, self._turn_t0, rec.turn_stopped, lim)
         remaining = rec.turn_goal - self._turn_yaw
         if rec.turning:
             target = approach_speed(remaining, lim.max_speed, 0.5 * c.max_yaw_accel, TURN_KP)

@@ -19,8 +19,9 @@ States:
   sequence ends on ``unique`` (confirming as usual), or when the next view would pass
   ``max_turn_deg`` (or repeat the first heading), or when the turn was stopped (the protective
   stop, a fault): then the verdict stands and is reported as without a turn. A sequence that ended
-  so is not turned again until a new trigger (or an operator's request): a robot that has looked
-  all round, or was stopped by something beside it, does not start moving on its own.
+  so is not turned again until a new trigger (or an operator's request, ``force``: the control
+  socket's ``recover``): a robot that has looked all round, or was stopped by something beside
+  it, does not start moving on its own.
 - ``moving`` (only with ``move_to_tell_apart``): the sequence ended ambiguous (after the turn, if
   any) and the shell planned a short move (``robot.localization.viewpoint``: a turn on the spot
   to face the way, then straight ahead) after which the map predicts different depth for the

@@ -718,6 +718,11 @@ def set_pose_message(t: float, x: float, y: float, phi: float, cov: Any, source:
     return out
 
 
+def recovery_request_message(t: float, why: str) -> Dict[str, Any]:
+    """``/status`` event: an operator or the fleet restarted the recovery sequence at ``t``."""
+    return {"t": float(t), "event": "recovery_request", "reason": str(why)}
+
+
 def hidden_walls_from_json(value: Any) -> List[Dict[str, Any]]:
     """A set_pose event's ``hidden_walls`` checked (absent: none); ValueError names what is wrong."""
     if value is None:
