@@ -167,6 +167,30 @@ def test_a_host_stall_stops_the_move_for_good_until_an_operator_asks_again(twin_
     assert max(r.error for r in res.targets) < 0.01
 
 
+def test_a_host_stall_stops_the_turn_and_an_operator_can_have_it_turn_again():
+    plan = PathPlan((Waypoint(*HOUSE_POSE, speed=0.2, tolerance=0.01),), StartPose(*HOUSE_POSE))
+
+    def drive(stall_at, ask_at, max_time):
+        settings = RunSettings(vision=True, max_time=max_time, known_start=False,
+                               faults=FaultPlan(host_stalls=((stall_at, 0.5),)))
+        run = _AskAgainAt(TURNING_ROBOT, HOUSE, plan, settings, ask_at=ask_at)
+        run.drive()
+        return run, run.result(0.0)
+
+    run0, _ = drive(1e9, None, 40.0)
+    t_turn = next(t for t, st in run0.recovery_log if st == TURNING)
+    t_stall = t_turn + 0.5
+    run, res = drive(t_stall, t_stall + 6.0, t_stall + 50.0)
+    states = [s for _, s in run.recovery_log]
+    # The stall stopped the first turn; asked again, the robot turned again (the fault, noted
+    # before that turn began, did not stop it) and found where it is.
+    first = states.index(TURNING)
+    assert TURNING in states[first + 1:] and states[first + 1] in (AMBIGUOUS, RELOCALIZING), states
+    verdict, truth, hyps = run.at_relocalization[-1][3], run.at_relocalization[-1][1], run.at_relocalization[-1][4]
+    assert verdict == "unique" and _moved(hyps[0], truth) < 0.01
+    assert res.finished, res.reason
+
+
 # -- the state machine alone ------------------------------------------------------------------------
 
 
