@@ -487,6 +487,27 @@ def test_init_position_is_checked_and_the_factsheet_is_sent_on_request(robot, ma
     assert master.invalid_messages() == []
 
 
+def test_a_robot_that_does_not_know_where_it_is_says_so_and_initposition_answers_it(robot, master):
+    robot.idle_state()
+    mark = master.mark()
+    robot.rig.app.call_on_loop(lambda: robot.rig.app.restart_recovery("the test asks")).result(HANG)
+    # The square arena: four places explain the views alike, so the robot holds and asks for a person.
+    s = master.wait(lambda s: _errors(s, "localizationAmbiguous"), "the ambiguity reported", since=mark)
+    (err,) = _errors(s, "localizationAmbiguous")
+    assert err["errorLevel"] == "FATAL" and "poses explain the views" in err["errorDescription"]
+    assert not s["driving"]
+    x, y, phi = robot.truth
+    mark = master.mark()
+    master.action("initPosition", "init-lost", x=x, y=y, theta=phi, mapId=MAP_ID)
+    s = master.wait(lambda s: (_action(s, "init-lost") or {}).get("actionStatus") in ("FINISHED", "FAILED"),
+                    "initPosition answered", since=mark)
+    assert _action(s, "init-lost")["actionStatus"] == "FINISHED"
+    s = master.wait(lambda s: not _errors(s, "localizationAmbiguous") and not _errors(s, "relocalizing"),
+                    "the recovery's errors cleared", since=mark)
+    assert abs(s["agvPosition"]["x"] - x) < 0.02 and abs(s["agvPosition"]["y"] - y) < 0.02
+    assert master.invalid_messages() == []
+
+
 def test_the_broker_going_away_the_robot_finishes_its_base_and_reconnects(robot, master, broker):
     x0, y0 = _here(robot)
     far = (0.3, 0.75) if x0 > 0.5 else (0.8, 0.75)

@@ -256,6 +256,12 @@ class AppVehicle(Vehicle):
         for name, state in self.app.camera_states.items():
             if state != "streaming":
                 out.append(("cameraNotStreaming", "WARNING", f"camera {name}: {state}"))
+        rec = self.core.recovery
+        if rec.state == "ambiguous":
+            # Still, with several places that explain its views: a person must decide (or move it).
+            out.append(("localizationAmbiguous", "FATAL", f"{rec.reason}; send initPosition"))
+        elif rec.state not in ("tracking", "checking"):
+            out.append(("relocalizing", "WARNING", f"{rec.state}: {rec.reason}"))
         if not self.core.initialized:
             out.append(("positionNotInitialized", "WARNING", "no pose: send initPosition"))
         else:
