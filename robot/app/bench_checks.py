@@ -308,8 +308,13 @@ def judge_handshake(chassis, samples: list, listen: float) -> CheckResult:
 OFF_GROUND = "wheels: off the ground"
 
 
+def _repeated(res: Dict[str, Any]) -> str:
+    n = int(res.get("host_stall_repeats", 0))
+    return f" (measured again: the host stalled {n} time(s) while commanding the wheels)" if n else ""
+
+
 def judge_off_ground(res: Dict[str, Any]) -> CheckResult:
-    ratios = ", ".join(f"{w} {100 * r:.0f} %" for w, r in zip(WHEELS, res["ratios"]))
+    ratios = ", ".join(f"{w} {100 * r:.0f} %" for w, r in zip(WHEELS, res["ratios"])) + _repeated(res)
     if res["ok"]:
         return CheckResult(OFF_GROUND, PASS, f"the wheels turned freely against each other ({ratios} of the "
                                              f"command); a board that makes up for load would pass too", res)
@@ -320,7 +325,7 @@ def judge_off_ground(res: Dict[str, Any]) -> CheckResult:
 def judge_wheel(res: Dict[str, Any]) -> CheckResult:
     name = f"wheel {res['wheel']}"
     detail = (f"{res['measured']:+.3f} rad/s for {res['command']:+.3f} ({res['error_pct']:+.1f} %), "
-              f"others up to {res['others_max']:.3f} rad/s")
+              f"others up to {res['others_max']:.3f} rad/s" + _repeated(res))
     if res["ok"]:
         return CheckResult(name, PASS, detail, res)
     why = []

@@ -2,6 +2,10 @@
 
 Shared by ``robotctl chassis`` and ``robotctl bench``; the caller decides whether the wheels may
 turn (they must be off the ground).
+
+A speed measurement during which the host itself stalled (a gap between two commands of half the
+board's watchdog or more, or the link called lost meanwhile) is repeated: the board's watchdog may
+have stopped the wheel, and the figure would blame the board for the host.
 """
 
 from __future__ import annotations
@@ -9,9 +13,9 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from typing import Dict, List, Optional
+from typing import Dict, List, Optional, Tuple
 
-from drivers.chassis.base import ChassisStatus
+from drivers.chassis.base import ChassisStatus, LinkState
 from drivers.chassis.serial_chassis import SerialChassis
 from robot.base.errors import DriverError
 from robot.base.samples import WheelOdometry
@@ -27,6 +31,7 @@ COMMAND_PERIOD = 0.02  # s: the bench commands at 50 Hz, like the controller
 OFF_GROUND_SPEED = 1.5  # rad/s: 4.5 cm/s of wheel rim, a scrub, not a drive
 OFF_GROUND_HOLD = 0.6  # s; the second half is measured
 OFF_GROUND_MIN_RATIO = 0.7  # a wheel reaching less than 70 % of its command is loaded
+HOST_STALL_TRIES = 3  # measurements in all where the host stalled during the window (_measured)
 
 
 async def bench(cfg: ChassisConfig, port: str, duration: float, motion: bool, speed: float, hold: float,
@@ -105,14 +110,55 @@ def _drain(q: asyncio.Queue) -> List[WheelOdometry]:
 
 
 async def _command_for(chassis: SerialChassis, odo: asyncio.Queue, wheels, seconds: float) -> List[WheelOdometry]:
+    samples, _ = await _command_window(chassis, odo, wheels, seconds)
+    return samples
+
+
+async def _command_window(chassis: SerialChassis, odo: asyncio.Queue, wheels,
+                          seconds: float) -> Tuple[List[WheelOdometry], float]:
+    """Command ``wheels`` for ``seconds``: the odometry received, and the longest gap between two
+    commands (s; a host that stalls that long may have let the board's watchdog stop the wheels)."""
     samples: List[WheelOdometry] = []
     t_end = time.monotonic() + seconds
+    t_prev, gap = time.monotonic(), 0.0
     while time.monotonic() < t_end:
         if not chassis.send_wheel_speeds(wheels):
             raise DriverError(f"{chassis.port}: command refused, link {chassis.link_state.value}: {chassis.last_error}")
+        now = time.monotonic()
+        gap, t_prev = max(gap, now - t_prev), now
         await asyncio.sleep(COMMAND_PERIOD)
         samples += _drain(odo)
-    return samples
+    return samples, max(gap, time.monotonic() - t_prev)
+
+
+async def _measured(chassis: SerialChassis, odo: asyncio.Queue, wheels, seconds: float) -> Tuple[List[WheelOdometry], int]:
+    """``_command_window`` then braking, repeated (up to ``HOST_STALL_TRIES`` in all) while the
+    host itself spoiled the window: a gap between commands of half the board's watchdog or more,
+    or a link the driver called lost meanwhile (a stalled host reads no reports). What it then
+    measures is the host, not the board. The samples of the last window, and the repeats made."""
+    watchdog = chassis.board_info.watchdog_ms / 1000.0 if chassis.board_info is not None else WATCHDOG_LIMIT
+    for tries in range(HOST_STALL_TRIES):
+        try:
+            samples, gap = await _command_window(chassis, odo, wheels, seconds)
+            spoiled = gap >= 0.5 * watchdog
+        except DriverError:
+            if tries == HOST_STALL_TRIES - 1 or not await _link_back(chassis):
+                raise
+            spoiled = True
+        await _settle(chassis, odo, 0.3)
+        if not spoiled or tries == HOST_STALL_TRIES - 1:
+            return samples, tries
+    raise AssertionError("unreachable")
+
+
+async def _link_back(chassis: SerialChassis, wait: float = 3.0) -> bool:
+    """Whether the link is (again) ready within ``wait`` s (the driver reconnects by itself)."""
+    t_end = time.monotonic() + wait
+    while time.monotonic() < t_end:
+        if chassis.link_state is LinkState.READY:
+            return True
+        await asyncio.sleep(0.05)
+    return False
 
 
 async def _settle(chassis: SerialChassis, odo: asyncio.Queue, seconds: float) -> None:
@@ -136,13 +182,13 @@ async def measure_wheel(chassis: SerialChassis, odo: asyncio.Queue, wheel: int, 
     cmd = [0.0, 0.0, 0.0, 0.0]
     cmd[wheel] = speed
     _drain(odo)
-    samples = await _command_for(chassis, odo, cmd, hold)
-    await _settle(chassis, odo, 0.3)
+    samples, repeats = await _measured(chassis, odo, cmd, hold)
     mean = _mean_speeds(samples)
     err = (mean[wheel] - speed) / speed
     others = max(abs(v) for i, v in enumerate(mean) if i != wheel)
     return {"wheel": WHEELS[wheel], "command": speed, "measured": mean[wheel], "error_pct": 100.0 * err,
-            "others_max": others, "ok": abs(err) <= SPEED_TOLERANCE and others <= SPEED_TOLERANCE * abs(speed)}
+            "others_max": others, "ok": abs(err) <= SPEED_TOLERANCE and others <= SPEED_TOLERANCE * abs(speed),
+            "host_stall_repeats": repeats}
 
 
 async def measure_off_ground(chassis: SerialChassis, odo: asyncio.Queue, speed: float = OFF_GROUND_SPEED,
@@ -154,11 +200,11 @@ async def measure_off_ground(chassis: SerialChassis, odo: asyncio.Queue, speed: 
     """
     cmd = [speed, speed, -speed, -speed]
     _drain(odo)
-    samples = await _command_for(chassis, odo, cmd, hold)
-    await _settle(chassis, odo, 0.3)
+    samples, repeats = await _measured(chassis, odo, cmd, hold)
     mean = _mean_speeds(samples)
     ratios = [m / c for m, c in zip(mean, cmd)]
-    return {"command": cmd, "measured": mean, "ratios": ratios, "ok": min(ratios) >= OFF_GROUND_MIN_RATIO}
+    return {"command": cmd, "measured": mean, "ratios": ratios, "ok": min(ratios) >= OFF_GROUND_MIN_RATIO,
+            "host_stall_repeats": repeats}
 
 
 async def measure_watchdog(chassis: SerialChassis, odo: asyncio.Queue, speed: float) -> Dict[str, object]:
