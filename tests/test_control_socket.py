@@ -736,22 +736,22 @@ def test_robotctl_talks_to_the_running_controller(live, tmp_path):
 
     until(("status", "--json"), lambda out: json.loads(out)["chassis"]["link"] == "ready")
     p = until(("status",), lambda out: "quality   localized" in out)
-    assert "battery 12.00 V" in p.stdout
+    assert "battery 12.00 V" in p.stdout, p.stdout
     bad = tmp_path / "bad.yaml"
     bad.write_text("waypoints:\n  - {x: 0.5, y: 0.5, speed: fast}\n")
     p = robotctl("go", str(bad))
     lines = p.stderr.strip().splitlines()
-    assert p.returncode == 2 and len(lines) == 1 and "bad.yaml" in lines[0] and "Traceback" not in p.stderr
+    assert p.returncode == 2 and len(lines) == 1 and "bad.yaml" in lines[0] and "Traceback" not in p.stderr, p.stderr
     p = robotctl("limits", "--speed", "5")
-    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1
+    assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, (p.stdout, p.stderr)
     p = robotctl("limits", "--speed", "0.2")
-    assert p.returncode == 0 and "0.200 m/s" in p.stdout
+    assert p.returncode == 0 and "0.200 m/s" in p.stdout, (p.stdout, p.stderr)
     good = tmp_path / "good.yaml"
     good.write_text("waypoints:\n  - {x: 0.55, y: 0.7, heading: 0.0}\n")
     p = robotctl("go", str(good))
     assert p.returncode == 0 and "1 waypoints" in p.stdout, p.stderr
-    live.at_rest()
-    assert _near(_truth(live), (0.55, 0.7), 0.01)
+    s = live.at_rest()
+    assert _near(_truth(live), (0.55, 0.7), 0.01), (_truth(live), s)
     # recover, as the test above asks over the socket: it relocalizes; the status line says so.
     p = robotctl("recover")
     assert p.returncode == 0 and p.stdout.startswith("recovery: relocalizing"), (p.stdout, p.stderr)
