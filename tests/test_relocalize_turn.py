@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 
@@ -130,17 +131,20 @@ class _AskAgainAt(_Run):
         return super()._control(t, payload)
 
 
+def _drive_stalled(robot, plane_map, pose, stall_at, ask_at, max_time):
+    """From ``pose`` without a pose, the host frozen for 0.5 s at ``stall_at`` (simulated s), and
+    the operator's ``recover`` at ``ask_at`` (None: never)."""
+    plan = PathPlan((Waypoint(pose[0], pose[1], pose[2], speed=0.2, tolerance=0.01),), StartPose(*pose))
+    settings = RunSettings(vision=True, max_time=max_time, known_start=False,
+                           faults=FaultPlan(host_stalls=((stall_at, 0.5),)))
+    run = _AskAgainAt(robot, plane_map, plan, settings, ask_at=ask_at)
+    run.drive()
+    return run, run.result(0.0)
+
+
 def test_a_host_stall_stops_the_move_for_good_until_an_operator_asks_again(twin_rooms):
     plane_map, pose = twin_rooms
-    plan = PathPlan((Waypoint(pose[0], pose[1], pose[2], speed=0.2, tolerance=0.01),), StartPose(*pose))
-
-    def drive(stall_at, ask_at, max_time):
-        settings = RunSettings(vision=True, max_time=max_time, known_start=False,
-                               faults=FaultPlan(host_stalls=((stall_at, 0.5),)))
-        run = _AskAgainAt(MOVING_ROBOT, plane_map, plan, settings, ask_at=ask_at)
-        run.drive()
-        return run, run.result(0.0)
-
+    drive = functools.partial(_drive_stalled, MOVING_ROBOT, plane_map, pose)
     run0, _ = drive(1e9, None, 60.0)
     t_move = next(t for t, st in run0.recovery_log if st == MOVING)
     t_stall = t_move + 1.0  # turning to face the way, or on the way
@@ -168,15 +172,7 @@ def test_a_host_stall_stops_the_move_for_good_until_an_operator_asks_again(twin_
 
 
 def test_a_host_stall_stops_the_turn_and_an_operator_can_have_it_turn_again():
-    plan = PathPlan((Waypoint(*HOUSE_POSE, speed=0.2, tolerance=0.01),), StartPose(*HOUSE_POSE))
-
-    def drive(stall_at, ask_at, max_time):
-        settings = RunSettings(vision=True, max_time=max_time, known_start=False,
-                               faults=FaultPlan(host_stalls=((stall_at, 0.5),)))
-        run = _AskAgainAt(TURNING_ROBOT, HOUSE, plan, settings, ask_at=ask_at)
-        run.drive()
-        return run, run.result(0.0)
-
+    drive = functools.partial(_drive_stalled, TURNING_ROBOT, HOUSE, HOUSE_POSE)
     run0, _ = drive(1e9, None, 40.0)
     t_turn = next(t for t, st in run0.recovery_log if st == TURNING)
     t_stall = t_turn + 0.5
