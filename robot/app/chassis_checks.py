@@ -137,18 +137,20 @@ async def _measured(chassis: SerialChassis, odo: asyncio.Queue, wheels, seconds:
     or a link the driver called lost meanwhile (a stalled host reads no reports). What it then
     measures is the host, not the board. The samples of the last window, and the repeats made."""
     watchdog = chassis.board_info.watchdog_ms / 1000.0 if chassis.board_info is not None else WATCHDOG_LIMIT
-    for tries in range(HOST_STALL_TRIES):
+    repeats = 0
+    while True:
+        last = repeats + 1 >= HOST_STALL_TRIES
         try:
             samples, gap = await _command_window(chassis, odo, wheels, seconds)
             spoiled = gap >= 0.5 * watchdog
         except DriverError:
-            if tries == HOST_STALL_TRIES - 1 or not await _link_back(chassis):
+            if last or not await _link_back(chassis):
                 raise
             spoiled = True
         await _settle(chassis, odo, 0.3)
-        if not spoiled or tries == HOST_STALL_TRIES - 1:
-            return samples, tries
-    raise AssertionError("unreachable")
+        if not spoiled or last:
+            return samples, repeats
+        repeats += 1
 
 
 async def _link_back(chassis: SerialChassis, wait: float = 3.0) -> bool:

@@ -31,6 +31,7 @@ from robot.app.fleet.agv import SUPPORTED_ACTIONS, VdaAgv, Vehicle
 from robot.base.errors import ConfigError
 from robot.config.fleet import FleetConfig
 from robot.control.path_file import MAX_WAYPOINTS
+from robot.control.recovery import AMBIGUOUS
 
 if TYPE_CHECKING:
     from robot.app.controller import RobotApp
@@ -257,10 +258,10 @@ class AppVehicle(Vehicle):
             if state != "streaming":
                 out.append(("cameraNotStreaming", "WARNING", f"camera {name}: {state}"))
         rec = self.core.recovery
-        if rec.state == "ambiguous":
+        if rec.state == AMBIGUOUS:
             # Still, with several places that explain its views: a person must decide (or move it).
             out.append(("localizationAmbiguous", "FATAL", f"{rec.reason}; send initPosition"))
-        elif rec.state not in ("tracking", "checking"):
+        elif rec.holding:  # relocalizing, turning or moving for a view, confirming
             out.append(("relocalizing", "WARNING", f"{rec.state}: {rec.reason}"))
         if not self.core.initialized:
             out.append(("positionNotInitialized", "WARNING", "no pose: send initPosition"))
