@@ -680,8 +680,9 @@ class _Scorer:
         bound, not the score (the others are 0 and []). Otherwise the result is the same as
         without a floor, to the bit.
 
-        ``without``: a wall group (``coplanar_groups``) scored as not built: left out of the
-        prediction, so what stands behind it is predicted there.
+        ``without``: a wall group (``coplanar_groups``) scored as not built: where a frame sees
+        through it, what stands behind it is predicted there; its other pixels are weighed as with
+        the wall (what stands in front of where it would be may be a panel, as before a wall).
         """
         total, agree, scored, through = 0.0, 0, 0, 0
         seen: Dict[str, int] = {}
@@ -707,14 +708,26 @@ class _Scorer:
                 rel = rels[view]
             T_gc = pose_to_T_ground_robot(*compose_se2(pose, rel)) @ cam.T_robot_camera
             views = predict_views(self.map, self.index, T_gc, grid, self.max_range)
-            if without is not None:
-                views = [v for v in views if self.coplanar.get(v.plane_id, v.plane_id) != without]
+            # (Rasterizing marks the views it finds hidden: the prediction without a wall group
+            # rasterizes copies made before, so that what that wall hid is drawn.)
+            unmarked = [replace(v) for v in views] if without is not None else None
             label = rasterize_views(views, grid) if views else np.full(grid.shape, -1, np.int32)
             cols, rows = grid.rays
             # Each view's plane in C, a row per view: a pixel's plane by table lookup (a list of
             # rows built pixel by pixel was a tenth of a relocalization's CPU on a 300-plane map).
             table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
             n_free, px = _pixels(label, table, z, valid, free, cols, rows, coarse)
+            if without is not None:
+                # Where the cameras see through the wall that is not built, what stands behind it
+                # is predicted; everything else is weighed as with the wall, so that what stands
+                # in front of where it would be (a stack of the boards it will be built of) may
+                # still be one panel. Scored against what is behind it everywhere instead, that
+                # clutter counted against the place piece by piece, and a right pose with its
+                # wall missing and boards before it lost to a wrong one 7 m off (fzk_haus_ground).
+                # (A copy: the label image is the grid's buffer, which the prediction without the
+                # group is rasterized into.)
+                label = label.copy()
+                n_free, px = self._unbuilt_pixels(unmarked, label, grid, z, valid, free, coarse, without, n_free, px)
             total += SEE_THROUGH * n_free
             through += n_free
             scored += n_free
@@ -769,6 +782,81 @@ class _Scorer:
         self.last_see_through = through / scored if scored else 0.0
         planes = [p for p, n in sorted(seen.items(), key=lambda kv: -kv[1]) if n >= 5]
         return score, support, planes
+
+    def _unbuilt_pixels(self, views: Sequence, label: np.ndarray, grid: CameraGrid, z: np.ndarray, valid: np.ndarray,
+                        free: Optional[np.ndarray], coarse: bool, without: str, n_free: int,
+                        px: Optional[Tuple[np.ndarray, ...]]) -> Tuple[int, Optional[Tuple[np.ndarray, ...]]]:
+        """One frame's ``_pixels`` (``n_free``, ``px``, with every wall in ``views``, as predicted and
+        not yet rasterized) with the wall group ``without`` not built at all.
+
+        Every pixel of the group is scored as ``_pixels`` scores it without the group: on what
+        stands behind it, or as clutter before it; where nothing stands behind it, a pixel is
+        dropped as a return where the map predicts no wall. A depth on the group's own plane is
+        no wall there: the wall is either built or not, and a twin place that saw part of a
+        wall through an opening the truth has must not keep the rest of it. One thing stays:
+        a pixel nearer than the group's plane (``_panel_gains``'s test) is kept on it for the
+        panel a place may have, so that boards standing where the wall would be, parallel to
+        it, are one object, as before a wall that is built. Unscored returns on its pixels are
+        tested against what stands behind it too."""
+        gone = [k for k, v in enumerate(views) if self.coplanar.get(v.plane_id, v.plane_id) == without]
+        if not gone:
+            return n_free, px
+        on_gone = np.isin(label, gone)
+        cols, rows = grid.rays
+        keep = [k for k in range(len(views)) if k not in gone]
+        rest = [views[k] for k in keep]
+        label_wo = rasterize_views(rest, grid) if rest else np.full(label.shape, -1, np.int32)
+        table_wo = np.array([v.pi_camera for v in rest], float).reshape(len(rest), 4)
+        if free is not None:
+            table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
+            n_free += (_free_see_through(np.where(on_gone, label_wo, -1), _label_edges(label_wo), free, table_wo, z,
+                                         cols, rows, coarse)
+                       - _free_see_through(np.where(on_gone, label, -1), _label_edges(label), free, table, z, cols,
+                                           rows, coarse))
+        if px is None:
+            return n_free, px
+        r_idx, c_idx, edge, lab, lab_seen, res_own, res, zm, sigma, denom, d = px
+        mine = on_gone[r_idx, c_idx]
+        if not mine.any():
+            return n_free, px
+        _, px_wo = _pixels(label_wo, table_wo, z, valid & on_gone, None, cols, rows, coarse)
+        where = np.full(label.shape, -1, np.intp)
+        if px_wo is not None:
+            where[px_wo[0], px_wo[1]] = np.arange(len(px_wo[0]))
+        at = where[r_idx, c_idx]
+        px = tuple(a.copy() for a in px)
+        to_views = np.array(keep, np.intp)  # the rest's indices into ``views``
+        if coarse:
+            # A coarse score's band is decimetres wide: boards a few centimetres before the wall
+            # cannot be told from it, and a pixel within the band is left as with the wall (a
+            # filter for the fine score, which tells them apart, and never a verdict).
+            mine &= res_own >= 3.0
+        # Scored without the group: the edge flag, the wall scored on and its residual.
+        scored_wo = np.flatnonzero(mine & (at >= 0))
+        if len(scored_wo):
+            j = at[scored_wo]
+            for i_field in (2, 6):
+                px[i_field][scored_wo] = px_wo[i_field][j]
+            px[4][scored_wo] = to_views[px_wo[4][j]]
+        # Where nothing stands behind it, a pixel before the group's plane is clutter before
+        # nothing (a residual far from any wall, not behind one), kept for the panel.
+        panel = mine & (res_own < -1.0)
+        lone = np.flatnonzero(panel & (at < 0))
+        px[6][lone] = -1e3
+        px[2][lone] = False
+        # Every other pixel of the group is the rest's entirely: own wall, its residual and plane.
+        moved = np.flatnonzero(mine & ~panel & (at >= 0))
+        if len(moved):
+            j = at[moved]
+            px[3][moved] = to_views[px_wo[3][j]]
+            for i_field in (5, 9, 10):
+                px[i_field][moved] = px_wo[i_field][j]
+        stay = ~(mine & ~panel & (at < 0))
+        if not stay.all():
+            px = tuple(a[stay] for a in px)
+            if not len(px[0]):
+                return n_free, None
+        return n_free, px
 
     def see_through_by_wall(self, pose: Tuple[float, float, float], coarse: bool = False,
                             rels: Optional[Sequence[Pose]] = None) -> Dict[str, int]:
