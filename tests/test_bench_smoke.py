@@ -76,6 +76,9 @@ def test_bench_cpu_quick_mode_returns_its_section(repo_root):
         assert sub in text
     assert "worker under" not in text, "a measuring subprocess failed: " + text
     assert "floor not run" not in text
+    # The same calls paced like the cameras, beside back to back (the figures are the run's own).
+    paced = [ln for ln in text.splitlines() if ln.startswith("The same calls paced like the cameras")]
+    assert paced and "back to back" in paced[0] and "after 33 ms asleep" in paced[0], paced
     # The figures exist and are CPU times (positive); what they are is for BENCHMARKS.md.
     totals = _cells(text, "| **total, no hooks (median / p95)** |")
     assert len(totals) == 4 and all(_number(c) > 0 for c in totals)
