@@ -369,18 +369,24 @@ def test_the_pin_takes_one_peak_and_refuses_a_flat_or_split_profile(house, profi
     assert math.isclose(got.cov[0][0], got.pinned ** 2) and got.cov[1][1] == 0.0025  # the other directions kept
 
 
+def _benchmark_clutter(name: str, kinds: list) -> list:
+    """The clutter of a benchmark site saved in tests/data (each solid's kind and faces), checked
+    to be the one the test was written for."""
+    from drivers.sim.clutter import Solid
+
+    data = np.load(f"tests/data/{name}")
+    found = [str(k) for k in data["kinds"]]
+    assert found == kinds
+    return [Solid(kind, tuple(data[f] for f in sorted(data.files) if f.startswith(f"s{i}_")))
+            for i, kind in enumerate(found)]
+
+
 def test_a_shelving_front_standing_where_a_twin_s_wall_would_be_is_no_wrong_unique(house):
     """A site of the benchmark (tests/data/fzk_shelving_twin_clutter.npz: its clutter's faces): a
     shelving unit's front stands where the 180 deg twin of the pose in the house would see a wall.
     The twin rests on two walls and leads the true pose, which rests on five as cleanly, by some
     400 nats, all of them the shelving's pixels as clutter. It must not come back unique."""
-    from drivers.sim.clutter import Solid
-
-    data = np.load("tests/data/fzk_shelving_twin_clutter.npz")
-    kinds = [str(k) for k in data["kinds"]]
-    clutter = [Solid(kind, tuple(data[name] for name in sorted(data.files) if name.startswith(f"s{i}_")))
-               for i, kind in enumerate(kinds)]
-    assert kinds == ["panel", "shelving", "panel", "door"]
+    clutter = _benchmark_clutter("fzk_shelving_twin_clutter.npz", ["panel", "shelving", "panel", "door"])
     pose = (1.309, 4.780, 1.537)
     scene = SimScene(HOUSE, clutter=clutter)
     for seed in range(3):
@@ -395,13 +401,9 @@ def _unbuilt_site():
     """A site of the benchmark (tests/data/fzk_unbuilt_wall_clutter.npz: its clutter's faces, two
     panels, a person, a shelving unit) in the house, with wall w005, the one the front camera faces,
     in the map but not built: the cameras see through it into the room behind."""
-    from drivers.sim.clutter import Solid, WallDeviation, built_walls
+    from drivers.sim.clutter import WallDeviation, built_walls
 
-    data = np.load("tests/data/fzk_unbuilt_wall_clutter.npz")
-    kinds = [str(k) for k in data["kinds"]]
-    clutter = [Solid(kind, tuple(data[name] for name in sorted(data.files) if name.startswith(f"s{i}_")))
-               for i, kind in enumerate(kinds)]
-    assert kinds == ["panel", "person", "panel", "shelving"]
+    clutter = _benchmark_clutter("fzk_unbuilt_wall_clutter.npz", ["panel", "person", "panel", "shelving"])
     return SimScene(HOUSE, clutter=clutter, walls=built_walls(HOUSE, {"w005": WallDeviation(built=False)}))
 
 
@@ -435,13 +437,9 @@ def _boards_where_the_wall_would_be():
     front of w005 over 63 % of it, a pallet stack, an open door leaf) in the house, with w005 in
     the map but not built: the front camera sees the boards where the wall would stand, and
     beside and above them the room behind."""
-    from drivers.sim.clutter import Solid, WallDeviation, built_walls
+    from drivers.sim.clutter import WallDeviation, built_walls
 
-    data = np.load("tests/data/fzk_unbuilt_wall_boards.npz")
-    kinds = [str(k) for k in data["kinds"]]
-    clutter = [Solid(kind, tuple(data[name] for name in sorted(data.files) if name.startswith(f"s{i}_")))
-               for i, kind in enumerate(kinds)]
-    assert kinds == ["person", "panel", "pallet", "door"]
+    clutter = _benchmark_clutter("fzk_unbuilt_wall_boards.npz", ["person", "panel", "pallet", "door"])
     return SimScene(HOUSE, clutter=clutter, walls=built_walls(HOUSE, {"w005": WallDeviation(built=False)}))
 
 
@@ -452,9 +450,9 @@ def test_boards_stacked_where_a_wall_is_not_built_yet_are_no_wrong_unique(house)
     """The truth explains the boards best as a panel before w005, and then sees through w005 on a
     quarter of its pixels; scored with w005 left out everywhere, the boards are clutter before
     the room behind. Either way it stayed hundreds of nats short of a place about 7 m away, turned
-    180 deg, which came back unique. The check now scores a missing wall only where the view
-    goes through it (what stands before it may still be a panel): the truth with w005 missing
-    comes within the margin, and no draw is unique."""
+    180 deg, which came back unique. The check now scores every pixel of the missing wall on what
+    stands behind it but keeps the wall's plane for the one panel a place may have: the truth
+    with w005 missing comes within the margin, and no draw is unique."""
     scene = _boards_where_the_wall_would_be()
     for seed in range(3):
         frames = [render_depth_frame(ROBOT, scene, c.name, BOARDS_POSE, rng=np.random.default_rng(seed),
