@@ -280,7 +280,9 @@ def test_realtime_ambiguous_start_moves_to_tell_the_places_apart_then_tracks(twi
     can stall it. The safe answer is checked: the robot holds, keeps the verdict, and does not
     start moving again on its own. Then the test asks for a new try as an operator would
     (``recover``), and the story is checked on the move that ran to its end. A busy machine may
-    stall a later move as well: that is answered the same way."""
+    stall a later move as well: that is answered the same way. Where the stall came late enough
+    that the views of the stopped move already tell the rooms apart, the robot is unique from
+    where it stands: then it must be right, confirmed and tracked without moving again."""
     robot = replace(ROBOT, recovery=replace(ROBOT.recovery, move_to_tell_apart=True))
     plane_map, start = twin_rooms
     watch = Watch()
@@ -309,6 +311,7 @@ def test_realtime_ambiguous_start_moves_to_tell_the_places_apart_then_tracks(twi
         return next((why for k, why in watch.reasons if k >= since and "the move was stopped" in why), "")
 
     retries = 0
+    stopped_short = False  # the stopped move alone told the rooms apart (no move ran to its end)
     with sim_rig(robot, plane_map, start, RealtimeSimSettings(fps=10, decimation=4), AppOptions(install_signal_handlers=False),
                  recorder=_SetPoseTap(watch), on_tick=on_tick) as rig:
         rig_ref["rig"] = rig
@@ -336,18 +339,37 @@ def test_realtime_ambiguous_start_moves_to_tell_the_places_apart_then_tracks(twi
                 with watch.cond:
                     k_rest = len(watch.ticks)
                 # ... and stays there: it plans no new move on its own over further relocalizations.
+                # What the stopped move saw may already tell the rooms apart: then one of them is
+                # unique from where the robot stands, and it is confirmed without a move.
                 attempts = rig.app.core.recovery.attempts
-                watch.wait(lambda attempts=attempts: rig.app.core.recovery.attempts >= attempts + 2, "two more relocalizations",
-                           thread.is_alive)
+                watch.wait(lambda attempts=attempts, k_rest=k_rest: (rig.app.core.recovery.attempts >= attempts + 2
+                                                                   or entered(CONFIRMING, k_rest)),
+                           "two more relocalizations, or a unique answer from where it stands", thread.is_alive)
                 with watch.cond:
                     assert not entered(MOVING, k_rest), watch.states
-                    assert all(s.twist == (0.0, 0.0, 0.0) for s in watch.ticks[k_rest:])
+                    k_unique = next((k for k, st, _ in watch.states if k >= k_rest and st == CONFIRMING), None)
+                    assert all(s.twist == (0.0, 0.0, 0.0) for s in watch.ticks[k_rest:k_unique])
                 retries += 1
+                if k_unique is not None:
+                    stopped_short = True
+                    watch.wait(lambda k_rest=k_rest: tracking_after_a_move(k_rest), "tracking after the unique answer",
+                               thread.is_alive)
+                    with watch.cond:
+                        k_back = len(watch.ticks) - 1
+                    break
                 assert retries <= 5, f"every move was stopped: {why}"
                 with watch.cond:
                     since = len(watch.ticks)
                 rig.app.call_on_loop(lambda: operator.recover("the test asks again after a host stall")).result(HANG)
     assert retries >= 1, "the stalled loop did not stop the first move"
+    if stopped_short:
+        # Tracking where it truly stands, without having moved after the stop.
+        truth = watch.ticks[k_back].truth
+        x, y, phi = watch.relocalized[-1]
+        assert math.hypot(x - truth[0], y - truth[1]) < 0.02 and _angle(phi, truth[2]) < math.radians(1.0)
+        fx, fy, fphi = watch.ticks[k_back].fused
+        assert math.hypot(fx - truth[0], fy - truth[1]) < 0.02 and _angle(fphi, truth[2]) < math.radians(1.0)
+        return
     # The last move ran to its end: the ticks from its first one on.
     k_move = next(k for k in range(k_back, -1, -1) if watch.ticks[k].state == MOVING)
     while k_move > 0 and watch.ticks[k_move - 1].state == MOVING:
