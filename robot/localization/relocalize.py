@@ -680,9 +680,9 @@ class _Scorer:
         bound, not the score (the others are 0 and []). Otherwise the result is the same as
         without a floor, to the bit.
 
-        ``without``: a wall group (``coplanar_groups``) scored as not built: where a frame sees
-        through it, what stands behind it is predicted there; its other pixels are weighed as with
-        the wall (what stands in front of where it would be may be a panel, as before a wall).
+        ``without``: a wall group (``coplanar_groups``) scored as not built at all: its pixels are
+        scored on what stands behind it, those nearer than its plane still on it for a panel
+        (``_unbuilt_pixels``).
         """
         total, agree, scored, through = 0.0, 0, 0, 0
         seen: Dict[str, int] = {}
@@ -718,16 +718,15 @@ class _Scorer:
             table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
             n_free, px = _pixels(label, table, z, valid, free, cols, rows, coarse)
             if without is not None:
-                # Where the cameras see through the wall that is not built, what stands behind it
-                # is predicted; everything else is weighed as with the wall, so that what stands
-                # in front of where it would be (a stack of the boards it will be built of) may
-                # still be one panel. Scored against what is behind it everywhere instead, that
-                # clutter counted against the place piece by piece, and a right pose with its
-                # wall missing and boards before it lost to a wrong one 7 m off (fzk_haus_ground).
+                # The wall's pixels on what stands behind it, but what stands nearer than its plane
+                # (the boards it will be built of) may still be the one panel: scored against what
+                # is behind it instead, those boards counted against the place piece by piece, and
+                # a right pose with its wall missing lost to a wrong one 6.9 m off (fzk_haus_ground).
                 # (A copy: the label image is the grid's buffer, which the prediction without the
                 # group is rasterized into.)
                 label = label.copy()
-                n_free, px = self._unbuilt_pixels(unmarked, label, grid, z, valid, free, coarse, without, n_free, px)
+                n_free, px = self._unbuilt_pixels(unmarked, label, table, grid, z, valid, free, coarse, without,
+                                                  n_free, px)
             total += SEE_THROUGH * n_free
             through += n_free
             scored += n_free
@@ -783,11 +782,12 @@ class _Scorer:
         planes = [p for p, n in sorted(seen.items(), key=lambda kv: -kv[1]) if n >= 5]
         return score, support, planes
 
-    def _unbuilt_pixels(self, views: Sequence, label: np.ndarray, grid: CameraGrid, z: np.ndarray, valid: np.ndarray,
-                        free: Optional[np.ndarray], coarse: bool, without: str, n_free: int,
+    def _unbuilt_pixels(self, views: Sequence, label: np.ndarray, table: np.ndarray, grid: CameraGrid, z: np.ndarray,
+                        valid: np.ndarray, free: Optional[np.ndarray], coarse: bool, without: str, n_free: int,
                         px: Optional[Tuple[np.ndarray, ...]]) -> Tuple[int, Optional[Tuple[np.ndarray, ...]]]:
-        """One frame's ``_pixels`` (``n_free``, ``px``, with every wall in ``views``, as predicted and
-        not yet rasterized) with the wall group ``without`` not built at all.
+        """One frame's ``_pixels`` (``n_free``, ``px``, from ``label`` and ``table`` with every wall
+        in ``views``, as predicted and not yet rasterized) with the wall group ``without`` not
+        built at all.
 
         Every pixel of the group is scored as ``_pixels`` scores it without the group: on what
         stands behind it, or as clutter before it; where nothing stands behind it, a pixel is
@@ -808,22 +808,21 @@ class _Scorer:
         label_wo = rasterize_views(rest, grid) if rest else np.full(label.shape, -1, np.int32)
         table_wo = np.array([v.pi_camera for v in rest], float).reshape(len(rest), 4)
         if free is not None:
-            table = np.array([v.pi_camera for v in views], float).reshape(len(views), 4)
             n_free += (_free_see_through(np.where(on_gone, label_wo, -1), _label_edges(label_wo), free, table_wo, z,
                                          cols, rows, coarse)
                        - _free_see_through(np.where(on_gone, label, -1), _label_edges(label), free, table, z, cols,
                                            rows, coarse))
         if px is None:
             return n_free, px
-        r_idx, c_idx, edge, lab, lab_seen, res_own, res, zm, sigma, denom, d = px
-        mine = on_gone[r_idx, c_idx]
+        res_own = px[5]
+        mine = on_gone[px[0], px[1]]
         if not mine.any():
             return n_free, px
         _, px_wo = _pixels(label_wo, table_wo, z, valid & on_gone, None, cols, rows, coarse)
         where = np.full(label.shape, -1, np.intp)
         if px_wo is not None:
             where[px_wo[0], px_wo[1]] = np.arange(len(px_wo[0]))
-        at = where[r_idx, c_idx]
+        at = where[px[0], px[1]]
         px = tuple(a.copy() for a in px)
         to_views = np.array(keep, np.intp)  # the rest's indices into ``views``
         if coarse:
